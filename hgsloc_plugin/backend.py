@@ -1,0 +1,95 @@
+"""The one place that chooses and starts the Taichi backend.
+
+``init(arch="auto" | "cpu" | "cuda")`` starts Taichi once per process; the environment variable
+``HGSLOC_ARCH`` gives the default. "auto" takes CUDA when Taichi finds it, else the CPU. Kernels are
+cached on disk by Taichi's offline cache (``HGSLOC_CACHE_DIR``, default ``~/.cache/hgsloc_plugin/taichi``)
+so a second process does not recompile them.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+logger = logging.getLogger("hgsloc_plugin")
+
+_ARCH: str | None = None
+_VALID = ("auto", "cpu", "cuda")
+
+
+def _cache_dir() -> str:
+    default = Path.home() / ".cache" / "hgsloc_plugin" / "taichi"
+    return str(Path(os.environ.get("HGSLOC_CACHE_DIR", default)))
+
+
+def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | None = None) -> str:
+    """Start Taichi on the chosen backend; later calls return the backend already chosen.
+
+    Args:
+        arch: "auto", "cpu" or "cuda"; None reads ``HGSLOC_ARCH`` (default "auto").
+        debug: Taichi debug mode (bounds checks), for development only.
+        cpu_threads: number of CPU threads for the CPU backend (default: all cores).
+
+    Returns:
+        The backend in use, "cpu" or "cuda".
+    """
+    global _ARCH
+    requested = (arch or os.environ.get("HGSLOC_ARCH", "auto")).lower()
+    if requested not in _VALID:
+        raise ValueError(f"arch must be one of {_VALID}, got {requested!r} (from argument or HGSLOC_ARCH)")
+    if _ARCH is not None:
+        if requested not in ("auto", _ARCH):
+            raise RuntimeError(
+                f"Taichi already started on {_ARCH!r}; call hgsloc_plugin.init({requested!r}) before any rendering"
+            )
+        return _ARCH
+    import taichi as ti
+
+    kwargs = dict(
+        offline_cache=True,
+        offline_cache_file_path=_cache_dir(),
+        debug=debug,
+        log_level=ti.WARN,
+        default_fp=ti.f32,
+        random_seed=0,
+    )
+    if cpu_threads:
+        kwargs["cpu_max_num_threads"] = int(cpu_threads)
+    if requested == "auto" and not _cuda_driver_present():
+        requested = "cpu"
+    if requested in ("auto", "cuda"):
+        try:
+            ti.init(arch=ti.cuda, **kwargs)
+            if ti.lang.impl.current_cfg().arch == ti.cuda:
+                _ARCH = "cuda"
+                logger.info("Taichi started on CUDA")
+                return _ARCH
+        except Exception as exc:  # pragma: no cover - depends on the machine
+            if requested == "cuda":
+                raise RuntimeError(f"CUDA backend requested but unavailable: {exc}") from exc
+        if requested == "cuda":
+            raise RuntimeError("CUDA backend requested but Taichi fell back to another arch")
+        ti.reset()
+    ti.init(arch=ti.cpu, **kwargs)
+    _ARCH = "cpu"
+    logger.info("Taichi started on CPU")
+    return _ARCH
+
+
+def _cuda_driver_present() -> bool:
+    """True when the CUDA driver library can be loaded (checked without starting Taichi)."""
+    import ctypes
+
+    for name in ("libcuda.so.1", "libcuda.so", "nvcuda.dll"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def current_arch() -> str:
+    """The backend in use, starting the default one if nothing was started yet."""
+    return _ARCH if _ARCH is not None else init()

@@ -1,0 +1,102 @@
+"""Pinhole camera intrinsics."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+_DISTORTED = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
+              "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV"}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: image size in pixels and K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
+
+    Convention: OpenCV axes (x right, y down, z forward); the centre of pixel (row i, col j) is (j + 0.5, i + 0.5).
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if int(v) != v or v <= 0:
+                raise ValueError(f"Camera.{name} must be a positive integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        for name in ("fx", "fy", "cx", "cy"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v):
+                raise ValueError(f"Camera.{name} must be finite, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"Camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @classmethod
+    def from_focal(cls, width: int, height: int, focal: float) -> Camera:
+        """One focal length, principal point at the image centre (ACE / 7-Scenes style)."""
+        return cls(width, height, focal, focal, width / 2.0, height / 2.0)
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_x_deg: float) -> Camera:
+        """Square pixels with the given horizontal field of view, centred principal point."""
+        f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
+        return cls.from_focal(width, height, f)
+
+    @classmethod
+    def from_colmap(cls, model: str, width: int, height: int, params, *, allow_distortion: bool = False) -> Camera:
+        """Build from a COLMAP model name and parameter list (COLMAP parameter order).
+
+        PINHOLE and SIMPLE_PINHOLE are exact. Models with distortion raise a ValueError unless
+        ``allow_distortion`` is set, which states that the images are already undistorted (then k, p are ignored).
+        """
+        model = str(model).upper()
+        p = [float(x) for x in params]
+        if model == "SIMPLE_PINHOLE":
+            return cls(width, height, p[0], p[0], p[1], p[2])
+        if model == "PINHOLE":
+            return cls(width, height, p[0], p[1], p[2], p[3])
+        if model in _DISTORTED:
+            if not allow_distortion:
+                raise ValueError(
+                    f"camera model {model} has distortion parameters; 3DGS renders undistorted pinhole images. "
+                    "Undistort the queries first and pass allow_distortion=True (--allow-distortion) to use "
+                    "only the pinhole part"
+                )
+            if model in ("SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
+                return cls(width, height, p[0], p[0], p[1], p[2])
+            return cls(width, height, p[0], p[1], p[2], p[3])
+        raise ValueError(f"unsupported camera model {model!r}")
+
+    @classmethod
+    def from_pycolmap(cls, cam, *, allow_distortion: bool = False) -> Camera:
+        """Build from a ``pycolmap.Camera``; see :meth:`from_colmap` for distortion."""
+        model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
+        return cls.from_colmap(model, cam.width, cam.height, list(cam.params), allow_distortion=allow_distortion)
+
+    def scaled(self, s: float) -> Camera:
+        """The camera for an image resized by s (exact under the +0.5 pixel-centre convention)."""
+        w = max(1, int(round(self.width * s)))
+        h = max(1, int(round(self.height * s)))
+        sx, sy = w / self.width, h / self.height
+        return Camera(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+    def with_max_side(self, max_side: int) -> Camera:
+        """This camera scaled down so that its longer side is at most ``max_side`` (never scaled up)."""
+        s = min(1.0, max_side / max(self.width, self.height))
+        return self if s >= 1.0 else self.scaled(s)
+
+    @property
+    def K(self) -> np.ndarray:
+        """Intrinsic matrix [3, 3], float64."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+
+    def __str__(self) -> str:
+        return f"{self.width}x{self.height} f=({self.fx:.3f},{self.fy:.3f}) c=({self.cx:.3f},{self.cy:.3f})"

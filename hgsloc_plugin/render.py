@@ -1,0 +1,335 @@
+"""Python entry points of the Taichi 3DGS renderer: ``render``, ``render_full`` and ``render_cost``.
+
+A :class:`Renderer` keeps one scene resident on the Taichi device and reuses per-camera workspaces, so
+repeated calls neither re-upload the scene nor recompile (kernels take ndarrays of any shape). All poses of
+one call go through each kernel stage in one launch (the batch is a leading dimension); a batch larger than
+``RasterConfig.max_batch_elements`` (poses x Gaussians) is split into chunks.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from .backend import current_arch
+from .camera import Camera
+from .kernels import RasterConfig
+from .kernels.blend import NSTAT, cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
+from .kernels.projection import projection_kernel
+from .kernels.tile_sort import count_kernel, tile_sort_kernel
+from .pose import Pose
+from .scene import GaussianScene
+
+
+def covariances_3d(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Upper triangle of Sigma = R S S^T R^T per Gaussian: [N, 6] (xx, xy, xz, yy, yz, zz), float32.
+
+    Args:
+        quats: unit quaternions w, x, y, z [N, 4]; scales: [N, 3].
+    """
+    q = quats.astype(np.float64)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    R = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+    M = R * scales.astype(np.float64)[:, None, :]
+    S = M @ M.transpose(0, 2, 1)
+    return np.stack([S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]], 1).astype(np.float32)
+
+
+def as_pose_list(poses) -> tuple[list[Pose], bool]:
+    """Normalise a Pose or a sequence of Poses; returns (list, was_single)."""
+    if isinstance(poses, Pose):
+        return [poses], True
+    if isinstance(poses, Sequence) or hasattr(poses, "__iter__"):
+        out = list(poses)
+        for k, p in enumerate(out):
+            if not isinstance(p, Pose):
+                raise TypeError(f"poses[{k}] must be a Pose, got {type(p).__name__}")
+        if not out:
+            raise ValueError("poses is empty")
+        return out, False
+    raise TypeError(f"poses must be a Pose or a list of Poses, got {type(poses).__name__}")
+
+
+@dataclass
+class _Workspace:
+    batch: int
+    bufs: dict
+
+
+class Renderer:
+    """One scene resident on the Taichi device.
+
+    Example:
+        >>> r = Renderer(scene)
+        >>> rgb = r.render(camera, [T1, T2])        # [2, H, W, 3]
+    """
+
+    def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
+        current_arch()
+        self.scene = scene
+        self.config = config or RasterConfig()
+        n = scene.num_gaussians
+        if n == 0:
+            raise ValueError("scene has no Gaussians")
+        self.n = n
+        self.sh_degree = scene.sh_degree
+        self._means = self._upload(scene.means, ti.f32)
+        self._cov3d = self._upload(covariances_3d(scene.quats, scene.scales), ti.f32)
+        self._opac = self._upload(scene.opacities, ti.f32)
+        self._sh = self._upload(scene.sh, ti.f32)
+        self._ws: dict[tuple, _Workspace] = {}
+        self._isect = None
+        self._isect_cap = 0
+        self._project = projection_kernel(self.config, self.sh_degree)
+        self._count = count_kernel()
+        self._sort = tile_sort_kernel(self.config)
+        mode = self.config.blend
+        if mode == "auto":
+            mode = "pixel" if current_arch() == "cuda" else "splat"
+        self.blend_mode = mode
+        if mode == "splat":
+            self._blend_img = splat_image_kernel(self.config)
+            self._blend_cost = splat_cost_kernel(self.config)
+        else:
+            self._blend_img = image_kernel(self.config)
+            self._blend_cost = cost_kernel(self.config)
+        self._reduce = reduce_kernel()
+        self.renders = 0  # poses rendered so far (for statistics)
+
+    @staticmethod
+    def _upload(a: np.ndarray, dtype) -> ti.Ndarray:
+        a = np.ascontiguousarray(a)
+        nd = ti.ndarray(dtype, shape=a.shape)
+        nd.from_numpy(a)
+        return nd
+
+    @property
+    def chunk(self) -> int:
+        """Poses per launch."""
+        return max(1, self.config.max_batch_elements // self.n)
+
+    def _workspace(self, camera: Camera, batch: int) -> _Workspace:
+        key = (camera.width, camera.height, batch)
+        ws = self._ws.get(key)
+        if ws is not None:
+            return ws
+        n, B, ts = self.n, batch, self.config.tile_size
+        tx, ty = -(-camera.width // ts), -(-camera.height // ts)
+        nd = ti.ndarray
+        bufs = dict(
+            viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
+            xy=nd(ti.f32, (B, n, 2)), conic_op=nd(ti.f32, (B, n, 4)), depth=nd(ti.f32, (B, n)),
+            color=nd(ti.f32, (B, n, 3)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
+            radius=nd(ti.f32, (B, n, 2)),
+            totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
+            keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)), ids_a=nd(ti.i32, (B, n)),
+            ids_b=nd(ti.i32, (B, n)), hist=nd(ti.i32, (B, 256)), cursor=nd(ti.i32, (B, tx * ty)),
+            tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)),
+            tiles=(tx, ty),
+        )
+        # Drop workspaces of other sizes for this camera size: keep memory bounded.
+        for k in [k for k in self._ws if k[:2] == key[:2]]:
+            del self._ws[k]
+        ws = _Workspace(B, bufs)
+        self._ws[key] = ws
+        return ws
+
+    def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background) -> None:
+        """Projection and tile sort for up to ``ws.batch`` poses."""
+        b = ws.bufs
+        B = len(poses)
+        vm = np.zeros((ws.batch, 3, 4), np.float32)
+        cp = np.zeros((ws.batch, 3), np.float32)
+        for k, T in enumerate(poses):
+            vm[k] = T.matrix34()
+            cp[k] = T.centre()
+        b["viewmats"].from_numpy(vm)
+        b["campos"].from_numpy(cp)
+        b["intrin"].from_numpy(np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
+        b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
+        tx, ty = b["tiles"]
+        self._project(self._means, self._cov3d, self._opac, self._sh, b["viewmats"], b["campos"], b["intrin"],
+                      camera.width, camera.height, B, b["xy"], b["conic_op"], b["depth"], b["color"], b["rect"],
+                      b["ntiles"], b["radius"])
+        self._count(b["ntiles"], B, b["totals"])
+        totals = b["totals"].to_numpy()[:B]
+        base = np.zeros(ws.batch, np.int64)
+        base[1:B] = np.cumsum(totals)[:-1]
+        need = int(totals.sum())
+        if need > self._isect_cap or self._isect is None:
+            cap = max(need, 1 << 16)
+            cap = int(cap * 1.25)
+            self._isect = ti.ndarray(ti.i32, (cap,))
+            self._isect_cap = cap
+        b["isect_base"].from_numpy(base)
+        self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, b["keys_a"], b["keys_b"],
+                   b["ids_a"], b["ids_b"], b["hist"], b["cursor"], b["tile_start"], self._isect)
+        self.renders += B
+
+    def _chunks(self, poses: list[Pose]):
+        c = self.chunk
+        for s in range(0, len(poses), c):
+            yield poses[s:s + c]
+
+    def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""
+        rgbs, alphas, depths = [], [], []
+        for part in self._chunks(poses):
+            ws = self._workspace(camera, min(len(poses), self.chunk))
+            b = ws.bufs
+            if "rgb" not in b:
+                H, W = camera.height, camera.width
+                b["rgb"] = ti.ndarray(ti.f32, (ws.batch, H, W, 3))
+                b["alpha"] = ti.ndarray(ti.f32, (ws.batch, H, W))
+                b["dimg"] = ti.ndarray(ti.f32, (ws.batch, H, W))
+            self._geometry(camera, part, ws, background)
+            tx, ty = b["tiles"]
+            if self.blend_mode == "splat":
+                self._blend_img(b["xy"], b["conic_op"], b["depth"], b["color"], b["radius"], b["tile_start"],
+                                self._isect, b["isect_base"], b["background"], tx, ty, len(part), self._acc(ws, camera),
+                                b["rgb"], b["alpha"], b["dimg"])
+            else:
+                self._blend_img(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
+                                b["isect_base"], b["background"], tx, len(part), b["rgb"], b["alpha"], b["dimg"])
+            n = len(part)
+            rgbs.append(b["rgb"].to_numpy()[:n])
+            alphas.append(b["alpha"].to_numpy()[:n])
+            depths.append(b["dimg"].to_numpy()[:n])
+        return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
+
+    @staticmethod
+    def _acc(ws: _Workspace, camera: Camera):
+        if "acc" not in ws.bufs:
+            ws.bufs["acc"] = ti.ndarray(ti.f32, (ws.batch, camera.height, camera.width, 5))
+        return ws.bufs["acc"]
+
+    def set_target(self, camera: Camera, target: np.ndarray) -> None:
+        """Upload the comparison image [H, W, 3] float32 in [0, 1] for :meth:`cost_stats`."""
+        target = np.ascontiguousarray(target, dtype=np.float32)
+        if target.shape != (camera.height, camera.width, 3):
+            raise ValueError(f"target image must be [{camera.height}, {camera.width}, 3], got {target.shape}")
+        key = (camera.width, camera.height)
+        nd = getattr(self, "_targets", {}).get(key)
+        if nd is None:
+            nd = ti.ndarray(ti.f32, target.shape)
+            self._targets = {key: nd}
+        nd.from_numpy(target)
+        self._target_key = key
+
+    def cost_stats(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0),
+                   mask_alpha: float = 0.0) -> np.ndarray:
+        """Photometric statistics against the target set by :meth:`set_target`: [B, NSTAT] float64.
+
+        See ``kernels/blend.py`` for the layout (n_valid, SAD, SSD, per-channel sums).
+        """
+        key = (camera.width, camera.height)
+        if getattr(self, "_target_key", None) != key:
+            raise RuntimeError("call set_target() with an image of this camera's size first")
+        target = self._targets[key]
+        out = []
+        for part in self._chunks(poses):
+            ws = self._workspace(camera, min(len(poses), self.chunk))
+            b = ws.bufs
+            tx, ty = b["tiles"]
+            if "run_stats" not in b:
+                rows = ty if self.blend_mode == "splat" else camera.height
+                b["run_stats"] = ti.ndarray(ti.f32, (ws.batch, rows, tx, NSTAT))
+                b["stats"] = ti.ndarray(ti.f64, (ws.batch, NSTAT))
+            self._geometry(camera, part, ws, background)
+            if self.blend_mode == "splat":
+                self._blend_cost(b["xy"], b["conic_op"], b["depth"], b["color"], b["radius"], b["tile_start"],
+                                 self._isect, b["isect_base"], b["background"], tx, ty, len(part),
+                                 self._acc(ws, camera), target, float(mask_alpha), b["run_stats"])
+            else:
+                self._blend_cost(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
+                                 b["isect_base"], b["background"], tx, len(part), target, float(mask_alpha),
+                                 b["run_stats"])
+            self._reduce(b["run_stats"], len(part), b["stats"])
+            out.append(b["stats"].to_numpy()[:len(part)])
+        return np.concatenate(out)
+
+
+_RENDERERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def get_renderer(scene: GaussianScene, config: RasterConfig | None = None) -> Renderer:
+    """The cached :class:`Renderer` of a scene (one per scene object and config)."""
+    config = config or RasterConfig()
+    per_scene = _RENDERERS.setdefault(scene, {})
+    r = per_scene.get(config)
+    if r is None:
+        r = per_scene[config] = Renderer(scene, config)
+    return r
+
+
+def _check(scene, camera):
+    if not isinstance(scene, GaussianScene):
+        raise TypeError(f"scene must be a GaussianScene, got {type(scene).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+
+
+def render(scene: GaussianScene, camera: Camera, poses, background=(0.0, 0.0, 0.0), *,
+           config: RasterConfig | None = None) -> np.ndarray:
+    """Render colour images.
+
+    Args:
+        scene: the Gaussians. camera: pinhole intrinsics and size.
+        poses: one world-to-camera :class:`Pose` or a list of them.
+        background: RGB added with the remaining transmittance.
+
+    Returns:
+        float32 [H, W, 3] for one pose, [B, H, W, 3] for a list.
+    """
+    rgb, _, _ = render_full(scene, camera, poses, background, config=config)
+    return rgb
+
+
+def render_full(scene: GaussianScene, camera: Camera, poses, background=(0.0, 0.0, 0.0), *,
+                config: RasterConfig | None = None):
+    """Like :func:`render` but returns (rgb [.., H, W, 3], alpha [.., H, W], depth [.., H, W]).
+
+    ``depth`` is the expected camera z of the blended Gaussians (accumulated depth / alpha; 0 where alpha = 0).
+    """
+    _check(scene, camera)
+    plist, single = as_pose_list(poses)
+    rgb, alpha, dacc = get_renderer(scene, config).render_full(camera, plist, background)
+    depth = np.where(alpha > 0, dacc / np.maximum(alpha, 1e-12), 0.0).astype(np.float32)
+    if single:
+        return rgb[0], alpha[0], depth[0]
+    return rgb, alpha, depth
+
+
+def render_cost(scene: GaussianScene, camera: Camera, poses, target_image, metric: str = "sad",
+                background=(0.0, 0.0, 0.0), *, mask_alpha: float = 0.0, config: RasterConfig | None = None):
+    """Image cost of each pose's rendering against ``target_image``, fused in the blending kernel.
+
+    Args:
+        target_image: [H, W, 3] float in [0, 1] or uint8.
+        metric: "sad" (sum of absolute differences over RGB), "ssd", "psnr" (100 - PSNR) or "ncc"
+            (1 - mean per-channel zero-mean normalised cross-correlation).
+        mask_alpha: pixels whose rendered alpha is below this are ignored.
+
+    Returns:
+        float64 [B] (a float for a single pose).
+    """
+    from .costs import cost_from_stats
+
+    _check(scene, camera)
+    plist, single = as_pose_list(poses)
+    img = np.asarray(target_image)
+    if img.dtype == np.uint8:
+        img = img.astype(np.float32) / 255.0
+    r = get_renderer(scene, config)
+    r.set_target(camera, img)
+    stats = r.cost_stats(camera, plist, background, mask_alpha)
+    cost = cost_from_stats(stats, metric, camera.width * camera.height)
+    return float(cost[0]) if single else cost

@@ -1,0 +1,340 @@
+"""Alpha-blending kernels: front-to-back compositing per pixel (CONVENTIONS §6 step 7).
+
+Two kernels share one per-pixel loop (``shade``):
+- ``image``: colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W];
+- ``cost``: the fused comparison with a target image. Each task blends one 16-pixel run of a row (one tile
+  wide) and accumulates photometric statistics in registers, so no image leaves the kernel; a second kernel
+  reduces the runs per pose in float64, in a fixed order (deterministic, no atomics).
+
+Statistics per pose (``NSTAT`` values): n_valid, sum |r - q|, sum (r - q)^2 (both over RGB), then per channel
+c: sum r, sum q, sum r^2, sum q^2, sum r*q. A pixel is valid when its rendered alpha >= ``mask_alpha``.
+Reference twin: ``tests/reference/render_torch.py::blend``.
+"""
+
+
+import functools
+
+import taichi as ti
+
+from .config import RasterConfig
+
+NSTAT = 18
+
+
+def _make_shade(config: RasterConfig):
+    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
+
+    @ti.func
+    def shade(b, px, py, tiles_x, xy: ti.template(), conic_op: ti.template(), depth: ti.template(),
+              color: ti.template(), tile_start: ti.template(), isect: ti.template(), isect_base: ti.template()):
+        t_id = (py // tile) * tiles_x + px // tile
+        base = ti.cast(isect_base[b], ti.i32)
+        start = base + tile_start[b, t_id]
+        end = base + tile_start[b, t_id + 1]
+        fx = ti.cast(px, ti.f32) + 0.5
+        fy = ti.cast(py, ti.f32) + 0.5
+        T = 1.0
+        C = ti.Vector([0.0, 0.0, 0.0])
+        D = 0.0
+        for k in range(start, end):
+            g = isect[k]
+            dx = xy[b, g, 0] - fx
+            dy = xy[b, g, 1] - fy
+            sigma = 0.5 * (conic_op[b, g, 0] * dx * dx + conic_op[b, g, 2] * dy * dy) + conic_op[b, g, 1] * dx * dy
+            alpha = ti.min(alpha_max, conic_op[b, g, 3] * ti.exp(-sigma))
+            if sigma < 0.0 or alpha < alpha_min:
+                continue
+            next_T = T * (1.0 - alpha)
+            if next_T <= t_eps:
+                break
+            vis = alpha * T
+            C += vis * ti.Vector([color[b, g, 0], color[b, g, 1], color[b, g, 2]])
+            D += vis * depth[b, g]
+            T = next_T
+        return C, T, D
+
+    return shade
+
+
+@functools.cache
+def image_kernel(config: RasterConfig):
+    """Kernel writing colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W]."""
+    shade = _make_shade(config)
+
+    @ti.kernel
+    def blend_image(
+        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        tiles_x: ti.i32,
+        num_poses: ti.i32,
+        out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
+        out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        out_depth: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    ):
+        H = out_rgb.shape[1]
+        W = out_rgb.shape[2]
+        for b, py, px in ti.ndrange(num_poses, H, W):
+            C, T, D = shade(b, px, py, tiles_x, xy, conic_op, depth, color, tile_start, isect, isect_base)
+            for c in ti.static(range(3)):
+                out_rgb[b, py, px, c] = C[c] + T * background[c]
+            out_alpha[b, py, px] = 1.0 - T
+            out_depth[b, py, px] = D
+
+    return blend_image
+
+
+@functools.cache
+def cost_kernel(config: RasterConfig):
+    """Kernel blending and comparing with ``target`` [H, W, 3]; writes run statistics [B, H, tiles_x, NSTAT]."""
+    shade = _make_shade(config)
+    tile = config.tile_size
+
+    @ti.kernel
+    def blend_cost(
+        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        tiles_x: ti.i32,
+        num_poses: ti.i32,
+        target: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        mask_alpha: ti.f32,
+        run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+    ):
+        H = target.shape[0]
+        W = target.shape[1]
+        for b, py, run in ti.ndrange(num_poses, H, tiles_x):
+            acc = ti.Vector([0.0] * NSTAT)
+            for dx in range(tile):
+                px = run * tile + dx
+                if px < W:
+                    C, T, D = shade(b, px, py, tiles_x, xy, conic_op, depth, color, tile_start, isect, isect_base)
+                    if 1.0 - T >= mask_alpha:
+                        acc[0] += 1.0
+                        for c in ti.static(range(3)):
+                            r = C[c] + T * background[c]
+                            q = target[py, px, c]
+                            e = r - q
+                            acc[1] += ti.abs(e)
+                            acc[2] += e * e
+                            acc[3 + 5 * c] += r
+                            acc[4 + 5 * c] += q
+                            acc[5 + 5 * c] += r * r
+                            acc[6 + 5 * c] += q * q
+                            acc[7 + 5 * c] += r * q
+            for s in ti.static(range(NSTAT)):
+                run_stats[b, py, run, s] = acc[s]
+
+    return blend_cost
+
+
+@functools.cache
+def reduce_kernel():
+    """Sum run statistics [B, H, TX, S] into per-pose totals [B, S] in float64, in a fixed order."""
+
+    @ti.kernel
+    def reduce_stats(run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
+                     out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+        H = run_stats.shape[1]
+        TX = run_stats.shape[2]
+        for b, s in ti.ndrange(num_poses, NSTAT):
+            tot = ti.f64(0.0)
+            for y in range(H):
+                for r in range(TX):
+                    tot += ti.cast(run_stats[b, y, r, s], ti.f64)
+            out[b, s] = tot
+
+    return reduce_stats
+
+
+def _make_splat_tile(config: RasterConfig):
+    """Per-tile splatting loop: Gaussians in depth order, each touching only the pixels of its box.
+
+    Accumulates into ``acc`` [B, H, W, 5] = (T, R, G, B, D); a finished pixel stores -T. Per pixel the same
+    Gaussians are blended in the same order and with the same arithmetic as ``shade`` (a pixel outside a
+    Gaussian's box has alpha < alpha_min there, so skipping it changes nothing), so the result equals the
+    per-pixel kernel's; the work is proportional to the box areas instead of tile area x list length.
+    """
+    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
+
+    @ti.func
+    def splat_tile(b, t, tiles_x, W, H, xy: ti.template(), conic_op: ti.template(), depth: ti.template(),
+                   color: ti.template(), radius: ti.template(), tile_start: ti.template(), isect: ti.template(),
+                   isect_base: ti.template(), acc: ti.template()):
+        x0 = (t % tiles_x) * tile
+        y0 = (t // tiles_x) * tile
+        x1 = ti.min(x0 + tile, W)
+        y1 = ti.min(y0 + tile, H)
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                acc[b, py, px, 0] = 1.0
+                for s in ti.static(range(1, 5)):
+                    acc[b, py, px, s] = 0.0
+        npix = (x1 - x0) * (y1 - y0)
+        ndone = 0
+        base = ti.cast(isect_base[b], ti.i32)
+        start = base + tile_start[b, t]
+        end = base + tile_start[b, t + 1]
+        for k in range(start, end):
+            if ndone >= npix:
+                break
+            g = isect[k]
+            mx = xy[b, g, 0]
+            my = xy[b, g, 1]
+            ca = conic_op[b, g, 0]
+            cb = conic_op[b, g, 1]
+            cc = conic_op[b, g, 2]
+            op = conic_op[b, g, 3]
+            rx = radius[b, g, 0]
+            ry = radius[b, g, 1]
+            # rows of the box; per row, the pixel centres inside the ellipse where alpha >= alpha_min
+            # (sigma <= ln(op / alpha_min)), widened by a small margin so rounding never drops a pixel
+            ly = ti.max(y0, ti.cast(ti.ceil(my - ry - 0.5), ti.i32))
+            hy = ti.min(y1, ti.cast(ti.floor(my + ry - 0.5), ti.i32) + 1)
+            lim = ti.log(ti.max(op, 1e-30) / alpha_min)
+            cr = color[b, g, 0]
+            cg = color[b, g, 1]
+            cbl = color[b, g, 2]
+            dz = depth[b, g]
+            for py in range(ly, hy):
+                dy = my - (ti.cast(py, ti.f32) + 0.5)
+                # 0.5 ca dx^2 + (cb dy) dx + 0.5 cc dy^2 - lim <= 0
+                bq = cb * dy
+                disc = bq * bq - ca * (cc * dy * dy - 2.0 * lim)
+                lx = x1
+                hx = x0
+                if disc >= 0.0 and lim > 0.0:
+                    sq = ti.sqrt(disc)
+                    dlo = (-bq - sq) / ca - 0.01
+                    dhi = (-bq + sq) / ca + 0.01
+                    # dx = mx - (px + 0.5) in [dlo, dhi]  <=>  px in [mx - 0.5 - dhi, mx - 0.5 - dlo]
+                    lx = ti.max(x0, ti.max(ti.cast(ti.ceil(mx - 0.5 - dhi), ti.i32),
+                                           ti.cast(ti.ceil(mx - rx - 0.5), ti.i32)))
+                    hx = ti.min(x1, ti.min(ti.cast(ti.floor(mx - 0.5 - dlo), ti.i32),
+                                           ti.cast(ti.floor(mx + rx - 0.5), ti.i32)) + 1)
+                for px in range(lx, hx):
+                    T = acc[b, py, px, 0]
+                    if T > 0.0:
+                        dx = mx - (ti.cast(px, ti.f32) + 0.5)
+                        sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                        alpha = ti.min(alpha_max, op * ti.exp(-sigma))
+                        if sigma >= 0.0 and alpha >= alpha_min:
+                            next_T = T * (1.0 - alpha)
+                            if next_T <= t_eps:
+                                acc[b, py, px, 0] = -T
+                                ndone += 1
+                            else:
+                                vis = alpha * T
+                                acc[b, py, px, 1] += vis * cr
+                                acc[b, py, px, 2] += vis * cg
+                                acc[b, py, px, 3] += vis * cbl
+                                acc[b, py, px, 4] += vis * dz
+                                acc[b, py, px, 0] = next_T
+
+    return splat_tile
+
+
+@functools.cache
+def splat_image_kernel(config: RasterConfig):
+    """Tile-parallel (CPU-friendly) twin of :func:`image_kernel`; same outputs plus the ``acc`` scratch."""
+    splat_tile = _make_splat_tile(config)
+    tile = config.tile_size
+
+    @ti.kernel
+    def splat_image(
+        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        tiles_x: ti.i32,
+        tiles_y: ti.i32,
+        num_poses: ti.i32,
+        acc: ti.types.ndarray(dtype=ti.f32, ndim=4),
+        out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
+        out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        out_depth: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    ):
+        H = out_rgb.shape[1]
+        W = out_rgb.shape[2]
+        for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
+            splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base, acc)
+            x0 = (t % tiles_x) * tile
+            y0 = (t // tiles_x) * tile
+            for py in range(y0, ti.min(y0 + tile, H)):
+                for px in range(x0, ti.min(x0 + tile, W)):
+                    T = ti.abs(acc[b, py, px, 0])
+                    for c in ti.static(range(3)):
+                        out_rgb[b, py, px, c] = acc[b, py, px, 1 + c] + T * background[c]
+                    out_alpha[b, py, px] = 1.0 - T
+                    out_depth[b, py, px] = acc[b, py, px, 4]
+
+    return splat_image
+
+
+@functools.cache
+def splat_cost_kernel(config: RasterConfig):
+    """Tile-parallel twin of :func:`cost_kernel`; writes statistics per tile [B, tiles_y, tiles_x, NSTAT]."""
+    splat_tile = _make_splat_tile(config)
+    tile = config.tile_size
+
+    @ti.kernel
+    def splat_cost(
+        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        tiles_x: ti.i32,
+        tiles_y: ti.i32,
+        num_poses: ti.i32,
+        acc: ti.types.ndarray(dtype=ti.f32, ndim=4),
+        target: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        mask_alpha: ti.f32,
+        run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+    ):
+        H = target.shape[0]
+        W = target.shape[1]
+        for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
+            splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base, acc)
+            x0 = (t % tiles_x) * tile
+            y0 = (t // tiles_x) * tile
+            st = ti.Vector([0.0] * NSTAT)
+            for py in range(y0, ti.min(y0 + tile, H)):
+                for px in range(x0, ti.min(x0 + tile, W)):
+                    T = ti.abs(acc[b, py, px, 0])
+                    if 1.0 - T >= mask_alpha:
+                        st[0] += 1.0
+                        for c in ti.static(range(3)):
+                            r = acc[b, py, px, 1 + c] + T * background[c]
+                            q = target[py, px, c]
+                            e = r - q
+                            st[1] += ti.abs(e)
+                            st[2] += e * e
+                            st[3 + 5 * c] += r
+                            st[4 + 5 * c] += q
+                            st[5 + 5 * c] += r * r
+                            st[6 + 5 * c] += q * q
+                            st[7 + 5 * c] += r * q
+            for s in ti.static(range(NSTAT)):
+                run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]
+
+    return splat_cost

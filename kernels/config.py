@@ -1,0 +1,44 @@
+"""Rasterizer settings shared by the kernels (the kernel-cache key)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, kw_only=True)
+class RasterConfig:
+    """Forward-pass constants; defaults follow gsplat 1.5.3 ``rasterize_mode="classic"`` (CONVENTIONS §6).
+
+    Attributes:
+        tile_size: tile edge in pixels.
+        eps2d: dilation added to the 2D covariance diagonal.
+        alpha_max: cap on per-Gaussian alpha (gsplat 0.999, Inria 0.99).
+        alpha_min: Gaussians with alpha below this are skipped (1/255).
+        t_eps: blending stops before the Gaussian that would bring transmittance to <= t_eps.
+        near_plane / far_plane: depth culling (camera z).
+        radius_mode: "gsplat" (opacity-aware per-axis box) or "inria" (3 sigma of the largest eigenvalue, square).
+        blend: "pixel" (one task per pixel, the GPU layout), "splat" (one task per tile, each Gaussian touching
+            only its box: much faster on the CPU) or "auto" (splat on CPU, pixel on CUDA). Same images.
+        max_batch_elements: poses x Gaussians handled per launch; larger calls are split into chunks.
+    """
+
+    tile_size: int = 16
+    eps2d: float = 0.3
+    alpha_max: float = 0.999
+    alpha_min: float = 1.0 / 255.0
+    t_eps: float = 1e-4
+    near_plane: float = 0.01
+    far_plane: float = 1e10
+    radius_mode: str = "gsplat"
+    blend: str = "auto"
+    max_batch_elements: int = 8_000_000
+
+    def __post_init__(self) -> None:
+        if self.radius_mode not in ("gsplat", "inria"):
+            raise ValueError(f"radius_mode must be 'gsplat' or 'inria', got {self.radius_mode!r}")
+        if self.blend not in ("auto", "pixel", "splat"):
+            raise ValueError(f"blend must be 'auto', 'pixel' or 'splat', got {self.blend!r}")
+        if not (0 < self.alpha_max <= 1):
+            raise ValueError(f"alpha_max must be in (0, 1], got {self.alpha_max}")
+        if self.tile_size <= 0 or self.max_batch_elements <= 0:
+            raise ValueError("tile_size and max_batch_elements must be positive")

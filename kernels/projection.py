@@ -1,0 +1,140 @@
+"""Projection kernel: world -> camera -> pixels, EWA 2D covariance, culling, SH colour, tile rectangles.
+
+Mirrors gsplat 1.5.3 ``ProjectionEWA3DGSFused.cu`` (CONVENTIONS §6 steps 2-6); reference twin:
+``tests/reference/render_torch.py::project``.
+"""
+
+
+import functools
+import math
+
+import taichi as ti
+
+from .config import RasterConfig
+from .sh import make_sh_func
+
+
+@functools.cache
+def projection_kernel(config: RasterConfig, sh_degree: int):
+    """Compiled projection kernel for one config and SH degree.
+
+    Kernel arguments:
+        means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3],
+        viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx, cy),
+        width, height, num_poses;
+        outputs: xy [B, N, 2], conic_op [B, N, 4] (a, b, c, opacity), depth [B, N], color [B, N, 3],
+        rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends), ntiles [B, N] (0 = culled),
+        radius [B, N, 2] (pixel half-extents of the box).
+    """
+    eval_sh = make_sh_func(sh_degree)
+    near, far = config.near_plane, config.far_plane
+    eps2d, tile = config.eps2d, config.tile_size
+    alpha_min = config.alpha_min
+    inria = config.radius_mode == "inria"
+    log_inv_amin = math.log(1.0 / alpha_min)
+
+    @ti.kernel
+    def project(
+        means: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        cov3d: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        opacities: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        sh: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        viewmats: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        campos: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        width: ti.i32,
+        height: ti.i32,
+        num_poses: ti.i32,
+        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
+        ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    ):
+        n = means.shape[0]
+        fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
+        wf = ti.cast(width, ti.f32)
+        hf = ti.cast(height, ti.f32)
+        tiles_x = (width + tile - 1) // tile
+        tiles_y = (height + tile - 1) // tile
+        tan_fovx = 0.5 * wf / fx
+        tan_fovy = 0.5 * hf / fy
+        lim_x_pos = (wf - cx) / fx + 0.3 * tan_fovx
+        lim_x_neg = cx / fx + 0.3 * tan_fovx
+        lim_y_pos = (hf - cy) / fy + 0.3 * tan_fovy
+        lim_y_neg = cy / fy + 0.3 * tan_fovy
+        for b, i in ti.ndrange(num_poses, n):
+            ntiles[b, i] = 0
+            R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
+            t = ti.Vector([viewmats[b, 0, 3], viewmats[b, 1, 3], viewmats[b, 2, 3]])
+            p_w = ti.Vector([means[i, 0], means[i, 1], means[i, 2]])
+            p_c = R @ p_w + t
+            z = p_c[2]
+            if z < near or z > far:
+                continue
+            S = ti.Matrix([[cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]],
+                           [cov3d[i, 1], cov3d[i, 3], cov3d[i, 4]],
+                           [cov3d[i, 2], cov3d[i, 4], cov3d[i, 5]]])
+            Sc = R @ S @ R.transpose()
+            rz = 1.0 / z
+            tx = z * ti.min(lim_x_pos, ti.max(-lim_x_neg, p_c[0] * rz))
+            ty = z * ti.min(lim_y_pos, ti.max(-lim_y_neg, p_c[1] * rz))
+            J = ti.Matrix([[fx * rz, 0.0, -fx * tx * rz * rz], [0.0, fy * rz, -fy * ty * rz * rz]])
+            cov2 = J @ Sc @ J.transpose()
+            c00 = cov2[0, 0] + eps2d
+            c01 = cov2[0, 1]
+            c11 = cov2[1, 1] + eps2d
+            det = c00 * c11 - c01 * c01
+            if det <= 0.0:
+                continue
+            inv_det = 1.0 / det
+            mx = fx * p_c[0] * rz + cx
+            my = fy * p_c[1] * rz + cy
+            op = opacities[i]
+            rx = 0.0
+            ry = 0.0
+            if ti.static(inria):
+                mid = 0.5 * (c00 + c11)
+                lam = mid + ti.sqrt(ti.max(0.1, mid * mid - det))
+                rx = ti.ceil(3.0 * ti.sqrt(lam))
+                ry = rx
+            else:
+                if op < alpha_min:
+                    continue
+                extend = ti.min(3.33, ti.sqrt(2.0 * (ti.log(op) + log_inv_amin)))
+                rx = ti.ceil(extend * ti.sqrt(c00))
+                ry = ti.ceil(extend * ti.sqrt(c11))
+            if rx <= 0.0 and ry <= 0.0:
+                continue
+            if mx + rx <= 0.0 or mx - rx >= wf or my + ry <= 0.0 or my - ry >= hf:
+                continue
+            x0 = ti.min(ti.max(0, ti.cast(ti.floor((mx - rx) / tile), ti.i32)), tiles_x)
+            x1 = ti.min(ti.max(0, ti.cast(ti.ceil((mx + rx) / tile), ti.i32)), tiles_x)
+            y0 = ti.min(ti.max(0, ti.cast(ti.floor((my - ry) / tile), ti.i32)), tiles_y)
+            y1 = ti.min(ti.max(0, ti.cast(ti.ceil((my + ry) / tile), ti.i32)), tiles_y)
+            nt = (x1 - x0) * (y1 - y0)
+            if nt <= 0:
+                continue
+            xy[b, i, 0] = mx
+            xy[b, i, 1] = my
+            conic_op[b, i, 0] = c11 * inv_det
+            conic_op[b, i, 1] = -c01 * inv_det
+            conic_op[b, i, 2] = c00 * inv_det
+            conic_op[b, i, 3] = op
+            depth[b, i] = z
+            d = p_w - ti.Vector([campos[b, 0], campos[b, 1], campos[b, 2]])
+            d = d / ti.max(d.norm(), 1e-12)
+            rgb = eval_sh(sh, i, d)
+            for c in ti.static(range(3)):
+                color[b, i, c] = ti.max(rgb[c] + 0.5, 0.0)
+            radius[b, i, 0] = rx
+            radius[b, i, 1] = ry
+            rect[b, i, 0] = x0
+            rect[b, i, 1] = y0
+            rect[b, i, 2] = x1
+            rect[b, i, 3] = y1
+            ntiles[b, i] = nt
+
+    return project

@@ -1,0 +1,120 @@
+"""Tile binning and depth ordering, in Taichi (CONVENTIONS §6 step 6).
+
+Per pose: gather the visible Gaussians, sort them by depth with a stable LSD radix sort on the float bits
+(depths are positive, so the bit pattern orders like the value), then a stable counting sort by tile id
+(count, prefix sum, scatter). Each tile's list therefore ends up in depth order, ties in index order, the
+same key order as gsplat's (tile | depth) sort. Poses are processed in parallel, each pose serially; this
+suits the CPU backend. Reference twin: ``tests/reference/render_torch.py::bin_tiles``.
+"""
+
+
+import functools
+
+import taichi as ti
+
+from .config import RasterConfig
+
+
+@functools.cache
+def count_kernel():
+    """Per-pose intersection totals: ntiles [B, N] -> totals [B]."""
+
+    @ti.kernel
+    def count(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32,
+              totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        n = ntiles.shape[1]
+        for b in range(num_poses):
+            s = ti.i64(0)
+            for i in range(n):
+                s += ntiles[b, i]
+            totals[b] = s
+
+    return count
+
+
+@functools.cache
+def tile_sort_kernel(config: RasterConfig):
+    """Compiled sorting kernel.
+
+    Kernel arguments:
+        depth [B, N], rect [B, N, 4], ntiles [B, N], isect_base [B] (start of each pose in ``isect``),
+        tiles_x, tiles_y, num_poses;
+        scratch: keys_a, keys_b [B, N] u32, ids_a, ids_b [B, N] i32, hist [B, 256] i32, cursor [B, T] i32;
+        outputs: tile_start [B, T + 1] (offsets relative to isect_base[b]), isect [M] Gaussian ids.
+    """
+
+    @ti.kernel
+    def tile_sort(
+        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
+        ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        tiles_x: ti.i32,
+        tiles_y: ti.i32,
+        num_poses: ti.i32,
+        keys_a: ti.types.ndarray(dtype=ti.u32, ndim=2),
+        keys_b: ti.types.ndarray(dtype=ti.u32, ndim=2),
+        ids_a: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        ids_b: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        hist: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        cursor: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    ):
+        n = depth.shape[1]
+        num_tiles = tiles_x * tiles_y
+        for b in range(num_poses):
+            m = 0
+            for i in range(n):
+                if ntiles[b, i] > 0:
+                    ids_a[b, m] = i
+                    keys_a[b, m] = ti.bit_cast(depth[b, i], ti.u32)
+                    m += 1
+            # stable LSD radix sort, 4 passes of 8 bits: a -> b -> a -> b -> a
+            for p in ti.static(range(4)):
+                shift = ti.static(8 * p)
+                src_k = ti.static(keys_a if p % 2 == 0 else keys_b)
+                dst_k = ti.static(keys_b if p % 2 == 0 else keys_a)
+                src_i = ti.static(ids_a if p % 2 == 0 else ids_b)
+                dst_i = ti.static(ids_b if p % 2 == 0 else ids_a)
+                for k in range(256):
+                    hist[b, k] = 0
+                for j in range(m):
+                    hist[b, ti.cast((src_k[b, j] >> shift) & 255, ti.i32)] += 1
+                acc = 0
+                for k in range(256):
+                    c = hist[b, k]
+                    hist[b, k] = acc
+                    acc += c
+                for j in range(m):
+                    key = src_k[b, j]
+                    digit = ti.cast((key >> shift) & 255, ti.i32)
+                    pos = hist[b, digit]
+                    hist[b, digit] = pos + 1
+                    dst_k[b, pos] = key
+                    dst_i[b, pos] = src_i[b, j]
+            # stable counting sort by tile id, visiting Gaussians in depth order
+            for t in range(num_tiles):
+                cursor[b, t] = 0
+            for j in range(m):
+                g = ids_a[b, j]
+                for ty in range(rect[b, g, 1], rect[b, g, 3]):
+                    for tx in range(rect[b, g, 0], rect[b, g, 2]):
+                        cursor[b, ty * tiles_x + tx] += 1
+            acc2 = 0
+            for t in range(num_tiles):
+                c = cursor[b, t]
+                tile_start[b, t] = acc2
+                cursor[b, t] = acc2
+                acc2 += c
+            tile_start[b, num_tiles] = acc2
+            base = ti.cast(isect_base[b], ti.i32)
+            for j in range(m):
+                g = ids_a[b, j]
+                for ty in range(rect[b, g, 1], rect[b, g, 3]):
+                    for tx in range(rect[b, g, 0], rect[b, g, 2]):
+                        t = ty * tiles_x + tx
+                        isect[base + cursor[b, t]] = g
+                        cursor[b, t] += 1
+
+    return tile_sort

@@ -1,0 +1,50 @@
+"""Shared fixtures: small random scenes, the ../shared data folder, Taichi on the CPU."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("HGSLOC_ARCH", "cpu")
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_path(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test saying which path was missing."""
+    p = SHARED.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"shared data not found: {p}")
+    return p
+
+
+def random_scene(n=400, sh_degree=1, seed=0, spread=1.0, centre=(0.0, 0.0, 3.0)):
+    """A seeded random scene in front of a camera at the origin looking down +z."""
+    from hgsloc_plugin import GaussianScene
+
+    rng = np.random.default_rng(seed)
+    means = rng.normal(size=(n, 3)) * spread * np.array([1.0, 0.75, 0.5]) + np.asarray(centre)
+    quats = rng.normal(size=(n, 4))
+    scales = np.exp(rng.uniform(-3.5, -1.5, size=(n, 3))) * spread
+    opac = rng.uniform(0.05, 0.99, size=n)
+    k = (sh_degree + 1) ** 2
+    sh = rng.normal(scale=0.3, size=(n, k, 3))
+    sh[:, 0] = rng.uniform(-1.5, 1.5, size=(n, 3))
+    return GaussianScene.from_arrays(means, quats, scales, opac, sh=sh)
+
+
+@pytest.fixture(scope="session")
+def donut():
+    from hgsloc_plugin import GaussianScene
+
+    return GaussianScene.from_ply(shared_path("scenes", "donut.ply"))
+
+
+@pytest.fixture(scope="session")
+def small_sh3():
+    from hgsloc_plugin import GaussianScene
+
+    return GaussianScene.from_ply(shared_path("scenes", "small_sh3.ply"))

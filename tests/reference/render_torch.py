@@ -1,0 +1,117 @@
+"""Independent PyTorch reference of the 3DGS forward pass (CPU), for testing the Taichi kernels.
+
+Projection and SH come from gsplat's pure-PyTorch ``gsplat.cuda._torch_impl`` (1.5.3); the opacity-aware
+radius, tile binning and blending are written here from CONVENTIONS §6, vectorised per tile in float64.
+Twins: ``project`` <-> kernels/projection.py, ``bin_tiles`` <-> kernels/tile_sort.py, ``blend`` <-> kernels/blend.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from gsplat.cuda import _torch_impl as gs
+
+ALPHA_MIN = 1.0 / 255.0
+
+
+def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e10, tile=16):
+    """Project one view. Returns a dict of tensors over the N Gaussians (radius 0 = culled)."""
+    means = torch.from_numpy(scene.means).float()
+    quats = torch.from_numpy(scene.quats).float()
+    scales = torch.from_numpy(scene.scales).float()
+    opac = torch.from_numpy(scene.opacities).float()
+    covars, _ = gs._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False, triu=False)
+    vm = torch.from_numpy(viewmat_44).float()[None]
+    K = torch.from_numpy(camera.K).float()[None]
+    W, H = camera.width, camera.height
+    _, means2d, depths, conics, _ = gs._fully_fused_projection(means, covars, vm, K, W, H, eps2d=eps2d,
+                                                                near_plane=near, far_plane=far)
+    means_c, covars_c = gs._world_to_cam(means, covars, vm)
+    _, cov2d = gs._persp_proj(means_c, covars_c, K, W, H)
+    cov2d = cov2d[0] + torch.eye(2) * eps2d
+    means2d, depths, conics = means2d[0], depths[0], conics[0]
+    det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] ** 2
+    extend = torch.clamp(torch.sqrt(2.0 * torch.log(torch.clamp(opac, min=1e-30) / ALPHA_MIN).clamp(min=0)),
+                         max=3.33)
+    rx = torch.ceil(extend * torch.sqrt(cov2d[:, 0, 0].clamp(min=0)))
+    ry = torch.ceil(extend * torch.sqrt(cov2d[:, 1, 1].clamp(min=0)))
+    valid = (depths >= near) & (depths <= far) & (det > 0) & (opac >= ALPHA_MIN) & ~((rx <= 0) & (ry <= 0))
+    valid &= (means2d[:, 0] + rx > 0) & (means2d[:, 0] - rx < W) & (means2d[:, 1] + ry > 0) & (means2d[:, 1] - ry < H)
+    R = torch.from_numpy(viewmat_44[:3, :3]).double()
+    campos = -R.T @ torch.from_numpy(viewmat_44[:3, 3]).double()
+    dirs = (torch.from_numpy(scene.means).double() - campos).float()
+    sh = torch.from_numpy(scene.sh).float()
+    colors = torch.clamp(gs._spherical_harmonics(scene.sh_degree, dirs, sh) + 0.5, min=0.0)
+    tx, ty = math.ceil(W / tile), math.ceil(H / tile)
+    x0 = torch.clamp(torch.floor((means2d[:, 0] - rx) / tile), 0, tx).long()
+    x1 = torch.clamp(torch.ceil((means2d[:, 0] + rx) / tile), 0, tx).long()
+    y0 = torch.clamp(torch.floor((means2d[:, 1] - ry) / tile), 0, ty).long()
+    y1 = torch.clamp(torch.ceil((means2d[:, 1] + ry) / tile), 0, ty).long()
+    valid &= (x1 > x0) & (y1 > y0)
+    return dict(means2d=means2d, conics=conics, depths=depths, opac=opac, colors=colors, valid=valid,
+                rect=torch.stack([x0, y0, x1, y1], 1), radius=torch.stack([rx, ry], 1))
+
+
+def bin_tiles(proj, camera, tile=16):
+    """Per tile, the Gaussian ids sorted by depth (stable, ties by index): list of LongTensors."""
+    tx, ty = math.ceil(camera.width / tile), math.ceil(camera.height / tile)
+    ids = torch.nonzero(proj["valid"]).flatten()
+    order = torch.sort(proj["depths"][ids], stable=True).indices
+    ids = ids[order]
+    rect = proj["rect"][ids]
+    out = []
+    for t in range(tx * ty):
+        cx, cy = t % tx, t // tx
+        m = (rect[:, 0] <= cx) & (cx < rect[:, 2]) & (rect[:, 1] <= cy) & (cy < rect[:, 3])
+        out.append(ids[m])
+    return out
+
+
+def blend(proj, lists, camera, background=(0.0, 0.0, 0.0), tile=16, alpha_max=0.999, t_eps=1e-4):
+    """Front-to-back compositing per pixel (CONVENTIONS §6 step 7), vectorised per tile in float64.
+
+    Returns (rgb [H, W, 3], alpha [H, W]) as float64 numpy arrays.
+    """
+    W, H = camera.width, camera.height
+    tx = math.ceil(W / tile)
+    rgb = np.zeros((H, W, 3))
+    alpha_img = np.zeros((H, W))
+    bg = torch.tensor(background, dtype=torch.float64)
+    for t, g in enumerate(lists):
+        x0, y0 = (t % tx) * tile, (t // tx) * tile
+        xs = torch.arange(x0, min(x0 + tile, W), dtype=torch.float64) + 0.5
+        ys = torch.arange(y0, min(y0 + tile, H), dtype=torch.float64) + 0.5
+        py, px = torch.meshgrid(ys, xs, indexing="ij")
+        P = px.numel()
+        if len(g) == 0:
+            rgb[y0:y0 + ys.numel(), x0:x0 + xs.numel()] = bg.numpy()
+            continue
+        m = proj["means2d"][g].double()
+        c = proj["conics"][g].double()
+        dx = m[None, :, 0] - px.reshape(-1, 1)
+        dy = m[None, :, 1] - py.reshape(-1, 1)
+        sigma = 0.5 * (c[None, :, 0] * dx * dx + c[None, :, 2] * dy * dy) + c[None, :, 1] * dx * dy
+        a = torch.clamp(proj["opac"][g].double()[None] * torch.exp(-sigma), max=alpha_max)
+        ok = (sigma >= 0) & (a >= ALPHA_MIN)
+        a = torch.where(ok, a, torch.zeros_like(a))
+        T_after = torch.cumprod(1 - a, dim=1)
+        stop = ok & (T_after <= t_eps)
+        dead = torch.cumsum(stop.to(torch.int32), dim=1) > 0
+        a = torch.where(dead, torch.zeros_like(a), a)
+        T_before = torch.cumprod(torch.cat([torch.ones(P, 1, dtype=a.dtype), 1 - a[:, :-1]], 1), dim=1)
+        w = a * T_before
+        col = w @ proj["colors"][g].double()
+        T = torch.prod(1 - a, dim=1)
+        out = col + T[:, None] * bg[None]
+        rgb[y0:y0 + ys.numel(), x0:x0 + xs.numel()] = out.reshape(ys.numel(), xs.numel(), 3).numpy()
+        alpha_img[y0:y0 + ys.numel(), x0:x0 + xs.numel()] = (1 - T).reshape(ys.numel(), xs.numel()).numpy()
+    return rgb, alpha_img
+
+
+def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0)):
+    """Full reference render of one pose: (rgb [H, W, 3], alpha [H, W]) float64."""
+    proj = project(scene, camera, pose.matrix())
+    lists = bin_tiles(proj, camera)
+    return blend(proj, lists, camera, background)

@@ -1,0 +1,172 @@
+"""PLY reading/writing, malformed files, pose conversions (against pycolmap), cameras."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pycolmap
+import pytest
+
+from hgsloc_plugin import Camera, GaussianScene, Pose
+from hgsloc_plugin.pose import rotation_angle_deg, so3_exp
+
+from .conftest import random_scene
+
+
+def test_round_trip_is_byte_exact(tmp_path):
+    scene = random_scene(n=50, sh_degree=3, seed=2)
+    a = scene.to_ply(tmp_path / "a.ply")
+    back = GaussianScene.from_ply(a)
+    b = back.to_ply(tmp_path / "b.ply")
+    assert a.read_bytes() == b.read_bytes()
+    np.testing.assert_allclose(back.means, scene.means)
+    np.testing.assert_allclose(back.sh, scene.sh)
+    np.testing.assert_allclose(back.opacities, scene.opacities, rtol=1e-5)
+    np.testing.assert_allclose(back.scales, scene.scales, rtol=1e-5)
+
+
+def test_real_files_round_trip_and_layout(tmp_path, donut, small_sh3):
+    from .conftest import shared_path
+
+    for scene, name in ((donut, "donut.ply"), (small_sh3, "small_sh3.ply")):
+        out = scene.to_ply(tmp_path / name)
+        assert out.read_bytes() == shared_path("scenes", name).read_bytes()
+    assert donut.num_gaussians == 45624 and donut.sh_degree == 0
+    assert small_sh3.num_gaussians == 9080 and small_sh3.sh_degree == 3
+    np.testing.assert_allclose(np.linalg.norm(donut.quats, axis=1), 1.0, atol=1e-6)
+
+
+def test_f_rest_is_channel_major_like_plyfile(small_sh3):
+    from plyfile import PlyData
+
+    from .conftest import shared_path
+
+    v = PlyData.read(str(shared_path("scenes", "small_sh3.ply")))["vertex"]
+    # coefficient k (1..15) of channel c is f_rest_{c*15 + k-1}
+    for c in range(3):
+        for k in (1, 7, 15):
+            np.testing.assert_array_equal(small_sh3.sh[:, k, c], v[f"f_rest_{c * 15 + k - 1}"])
+    np.testing.assert_allclose(small_sh3.opacities, 1 / (1 + np.exp(-v["opacity"].astype(np.float64))), rtol=1e-6)
+    np.testing.assert_allclose(small_sh3.scales[:, 2], np.exp(v["scale_2"].astype(np.float64)), rtol=1e-6)
+
+
+def _write(tmp_path, header_lines, body: bytes, name="bad.ply"):
+    p = tmp_path / name
+    p.write_bytes(("\n".join(header_lines) + "\n").encode() + body)
+    return p
+
+
+BASE_PROPS = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+              "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def _header(props, n=2, fmt="binary_little_endian"):
+    return ["ply", f"format {fmt} 1.0", f"element vertex {n}"] + [f"property float {p}" for p in props] + [
+        "end_header"]
+
+
+def _body(n, props, fill=None):
+    a = np.ones((n, len(props)), "<f4")
+    if fill:
+        for k, v in fill.items():
+            a[:, props.index(k)] = v
+    return a.tobytes()
+
+
+@pytest.mark.parametrize("case,match", [
+    ("ascii", "binary_little_endian"),
+    ("truncated", "truncated"),
+    ("missing", "missing properties"),
+    ("nan", "non-finite"),
+    ("inf", "non-finite"),
+    ("zero_quat", "zero rotation quaternion"),
+    ("bad_rest", "f_rest"),
+    ("not_ply", "not a PLY"),
+])
+def test_malformed_ply_names_file_and_problem(tmp_path, case, match):
+    props = list(BASE_PROPS)
+    if case == "ascii":
+        p = _write(tmp_path, _header(props, 1, "ascii"), b" ".join([b"1"] * len(props)))
+    elif case == "truncated":
+        p = _write(tmp_path, _header(props, 3), _body(2, props))
+    elif case == "missing":
+        pr = [x for x in props if x != "scale_1"]
+        p = _write(tmp_path, _header(pr), _body(2, pr))
+    elif case in ("nan", "inf"):
+        p = _write(tmp_path, _header(props), _body(2, props, {"y": np.nan if case == "nan" else np.inf}))
+    elif case == "zero_quat":
+        p = _write(tmp_path, _header(props), _body(2, props, {f"rot_{i}": 0.0 for i in range(4)}))
+    elif case == "bad_rest":
+        pr = props[:6] + [f"f_rest_{i}" for i in range(7)] + props[6:]
+        p = _write(tmp_path, _header(pr), _body(2, pr))
+    else:
+        p = tmp_path / "bad.ply"
+        p.write_bytes(b"hello world")
+    with pytest.raises(ValueError, match=match) as ei:
+        GaussianScene.from_ply(p)
+    assert "bad.ply" in str(ei.value)
+
+
+def test_from_arrays_validates():
+    with pytest.raises(ValueError, match="means"):
+        GaussianScene.from_arrays(np.zeros((3, 2)), np.ones((3, 4)), np.ones((3, 3)), np.full(3, 0.5),
+                                  colors=np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="opacities"):
+        GaussianScene.from_arrays(np.zeros((3, 3)), np.ones((3, 4)), np.ones((3, 3)), np.full(3, 1.5),
+                                  colors=np.zeros((3, 3)))
+
+
+def test_pose_conversions_against_pycolmap():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        t = rng.normal(size=3)
+        T = Pose(q, t)
+        rig = pycolmap.Rigid3d(pycolmap.Rotation3d(T.qvec[[1, 2, 3, 0]]), t)
+        np.testing.assert_allclose(T.R, rig.rotation.matrix(), atol=1e-12)
+        np.testing.assert_allclose(T.matrix34(), rig.matrix(), atol=1e-12)
+        np.testing.assert_allclose(T.centre(), rig.inverse().translation, atol=1e-12)
+        back = Pose.from_pycolmap(T.to_pycolmap())
+        np.testing.assert_allclose(back.qvec, T.qvec, atol=1e-12)
+        np.testing.assert_allclose(Pose.from_matrix(T.matrix()).qvec, T.qvec, atol=1e-12)
+        np.testing.assert_allclose((T @ T.inv()).matrix(), np.eye(4), atol=1e-12)
+        inv = rig.inverse()
+        np.testing.assert_allclose(T.inv().matrix34(), inv.matrix(), atol=1e-12)
+
+
+def test_pycolmap_quat_order_anchor():
+    # CONVENTIONS §1: a 90 degree rotation about x is [0.7071, 0, 0, 0.7071] (x y z w) in pycolmap
+    T = Pose([math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0], [0, 0, 0])
+    np.testing.assert_allclose(np.asarray(T.to_pycolmap().rotation.quat), [0.70710678, 0, 0, 0.70710678], atol=1e-7)
+
+
+@pytest.mark.parametrize("q", [[0, 0, 0, 0], [np.nan, 1, 0, 0], [1, 0, np.inf, 0]])
+def test_pose_rejects_bad_quaternions(q):
+    with pytest.raises(ValueError):
+        Pose(q, [0, 0, 0])
+
+
+def test_pose_normalises_and_canonicalises_sign():
+    T = Pose([-2, 0, 0, 0], [1, 2, 3])
+    np.testing.assert_array_equal(T.qvec, [1, 0, 0, 0])
+
+
+def test_rotation_angle_small_and_exact():
+    for deg in (1e-4, 0.01, 1.0, 90.0, 179.0):
+        R = so3_exp(np.array([0.3, -0.4, 0.5]) / np.linalg.norm([0.3, -0.4, 0.5]) * math.radians(deg))
+        assert rotation_angle_deg(np.eye(3), R) == pytest.approx(deg, rel=1e-9)
+
+
+def test_camera_scaling_and_colmap_models():
+    cam = Camera(640, 480, 525.0, 526.0, 320.0, 240.0)
+    s = cam.scaled(0.25)
+    assert (s.width, s.height, s.fx, s.cx) == (160, 120, 131.25, 80.0)
+    assert cam.with_max_side(160) == s
+    pc = pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0])
+    assert Camera.from_pycolmap(pc) == Camera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    with pytest.raises(ValueError, match="distortion"):
+        Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01])
+    assert Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01], allow_distortion=True).fx == 500
+    with pytest.raises(ValueError):
+        Camera(0, 10, 1.0, 1.0, 0.0, 0.0)

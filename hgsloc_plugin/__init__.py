@@ -7,14 +7,18 @@ from .backend import current_arch, init
 from .camera import Camera
 from .kernels import RasterConfig
 from .pose import Pose
+from .refine import HGSLocPlugin, RefineConfig, RefineResult
 from .render import Renderer, render, render_cost, render_full
 from .scene import GaussianScene
 
 __all__ = [
     "Camera",
     "GaussianScene",
+    "HGSLocPlugin",
     "Pose",
     "RasterConfig",
+    "RefineConfig",
+    "RefineResult",
     "Renderer",
     "current_arch",
     "init",

@@ -1,0 +1,108 @@
+"""RefineConfig: every setting of the pose search, with named presets stored as data."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+METRICS = ("sad", "psnr", "ssim", "ncc", "affine")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefineConfig:
+    """Settings of :class:`~hgsloc_plugin.HGSLocPlugin`.
+
+    Attributes:
+        metric: heuristic h: "sad" (paper's L1 sum), "psnr" (100 - PSNR), "ssim" (1 - SSIM via kornia),
+            "ncc" (1 - zero-mean NCC) or "affine" (L1-scaled RMS residual after a per-channel gain/offset fit;
+            robust to exposure changes).
+        neighbourhood: "lattice" (12 moves: +-dr about each camera axis, +-dt along each; proper rotations)
+            or "paper" (14 moves: +-d on each raw q, t component; quaternion normalised before rendering).
+        levels: explicit (rotation step in degrees, translation step in scene units) per level, coarse to fine;
+            empty = chosen from the scene depth and the camera (see ``level_pixels``).
+        level_pixels: image motion in scoring pixels of each automatic level's step.
+        max_expansions_per_level / max_expansions: expansion budgets (per level / whole query).
+        patience: consecutive expansions without a new best before a level stops (0 = never stop early).
+        pivot: lattice rotations turn about a point on the optical axis at the median scene depth (decouples
+            rotation from translation); False turns about the camera centre.
+        pattern_moves: also score the node that repeats the move which reached the expanded node.
+        heuristic_weight / depth_cost: f = depth_cost * g + heuristic_weight * h (paper: 1 and 1;
+            depth_cost 0 gives pure greedy best-first).
+        score_max_side: longer image side at which the last level scores; coarse levels use
+            ``coarse_scale`` times that.
+        max_translation / max_rotation_deg: trust region around the coarse pose (None = automatic: half the
+            median scene depth seen from the coarse pose).
+        mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
+        background: RGB behind the Gaussians (the colour the map was trained with).
+        resize_query: resize a query whose size differs from the camera's instead of raising.
+        paper_step_q / paper_step_t: raw-component steps of the "paper" neighbourhood.
+    """
+
+    metric: str = "affine"
+    neighbourhood: str = "lattice"
+    levels: tuple[tuple[float, float], ...] = ()
+    level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25)
+    max_expansions_per_level: int = 30
+    max_expansions: int = 150
+    patience: int = 1
+    pivot: bool = True
+    pattern_moves: bool = True
+    heuristic_weight: float = 1.0
+    depth_cost: float = 0.0
+    score_max_side: int = 160
+    coarse_scale: float = 0.5
+    max_translation: float | None = None
+    max_rotation_deg: float = 10.0
+    mask_alpha: float = 0.0
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    resize_query: bool = False
+    paper_step_q: float = 1e-4
+    paper_step_t: float = 1e-4
+    extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.metric not in METRICS:
+            raise ValueError(f"metric must be one of {METRICS}, got {self.metric!r}")
+        if self.neighbourhood not in ("lattice", "paper"):
+            raise ValueError(f"neighbourhood must be 'lattice' or 'paper', got {self.neighbourhood!r}")
+        if self.max_expansions < 0 or self.max_expansions_per_level < 0 or self.patience < 0:
+            raise ValueError("expansion budgets and patience must be >= 0")
+        if self.score_max_side < 8:
+            raise ValueError(f"score_max_side must be >= 8, got {self.score_max_side}")
+        if not (0 < self.coarse_scale <= 1):
+            raise ValueError(f"coarse_scale must be in (0, 1], got {self.coarse_scale}")
+        for lv in self.levels:
+            if len(lv) != 2 or lv[0] < 0 or lv[1] < 0 or (lv[0] == 0 and lv[1] == 0):
+                raise ValueError(f"each level must be (rotation_deg >= 0, translation >= 0), got {lv!r}")
+        object.__setattr__(self, "levels", tuple(tuple(float(x) for x in lv) for lv in self.levels))
+        object.__setattr__(self, "level_pixels", tuple(float(x) for x in self.level_pixels))
+        object.__setattr__(self, "background", tuple(float(x) for x in self.background))
+
+    @staticmethod
+    def preset(name: str, **overrides) -> RefineConfig:
+        """A named preset ("default", "fast", "accurate", "paper"), with optional field overrides."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+        return dataclasses.replace(PRESETS[name], **overrides)
+
+    def replace(self, **changes) -> RefineConfig:
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("extra", None)
+        return d
+
+
+PRESETS: dict[str, RefineConfig] = {
+    "default": RefineConfig(),
+    "fast": RefineConfig(level_pixels=(4.0, 2.0, 1.0, 0.5), max_expansions_per_level=15, max_expansions=60,
+                         score_max_side=120),
+    "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75, 0.375, 0.1875), max_expansions_per_level=40,
+                             max_expansions=240, patience=2, score_max_side=240),
+    # Emulation of the official scheme: raw-component steps, one fixed level, f = g + h, 399 expansions,
+    # L1 cost, no early stop.
+    "paper": RefineConfig(metric="sad", neighbourhood="paper", max_expansions_per_level=399, max_expansions=399,
+                          patience=0, heuristic_weight=1.0, depth_cost=1.0, coarse_scale=1.0,
+                          max_translation=0.5, max_rotation_deg=5.0),
+}

@@ -1,0 +1,68 @@
+"""Query-image loading and resizing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..camera import Camera
+
+
+def load_image(image, *, name: str = "image") -> np.ndarray:
+    """Any supported query image as float32 [H, W, 3] in [0, 1].
+
+    Accepts a path (PNG/JPEG; RGBA is composited on black unless it is fully opaque), a numpy array
+    [H, W, 3] (uint8 or float in [0, 1]) or a torch tensor [3, H, W].
+    """
+    if isinstance(image, (str, Path)):
+        from PIL import Image
+
+        p = Path(image)
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: query image not found")
+        with Image.open(p) as im:
+            im = im.convert("RGBA") if im.mode in ("RGBA", "LA", "P") else im.convert("RGB")
+            a = np.asarray(im, dtype=np.float32) / 255.0
+        if a.shape[2] == 4:
+            a = a[..., :3] * a[..., 3:4]
+        return np.ascontiguousarray(a)
+    if isinstance(image, torch.Tensor):
+        t = image.detach().cpu()
+        if t.ndim != 3 or t.shape[0] != 3:
+            raise ValueError(f"{name}: a torch image must be [3, H, W], got {tuple(t.shape)}")
+        a = t.permute(1, 2, 0).float().numpy()
+    else:
+        a = np.asarray(image)
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"{name}: a numpy image must be [H, W, 3], got {a.shape}")
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a, dtype=np.float32) / 255.0
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: image has non-finite values")
+    if a.min() < -1e-3 or a.max() > 1.001:
+        raise ValueError(f"{name}: float images must be in [0, 1] (got range {a.min():.3g}..{a.max():.3g})")
+    return np.clip(a, 0.0, 1.0)
+
+
+def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area-averaging (antialiased) resize of [H, W, 3] float32 to [height, width, 3]; deterministic."""
+    if img.shape[0] == height and img.shape[1] == width:
+        return img
+    t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None]
+    t = F.interpolate(t, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return np.ascontiguousarray(t[0].permute(1, 2, 0).numpy().clip(0, 1), dtype=np.float32)
+
+
+def check_size(img: np.ndarray, camera: Camera, resize: bool, name: str = "image") -> np.ndarray:
+    """The image at the camera's size, or a ValueError naming both sizes."""
+    h, w = img.shape[:2]
+    if (w, h) == (camera.width, camera.height):
+        return img
+    if not resize:
+        raise ValueError(f"{name}: image is {w}x{h} but the camera is {camera.width}x{camera.height} "
+                         "(set RefineConfig(resize_query=True) to resize it)")
+    return resize_image(img, camera.width, camera.height)

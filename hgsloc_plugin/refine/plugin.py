@@ -1,0 +1,219 @@
+"""HGSLocPlugin: refine a coarse camera pose by heuristic search over 3DGS renderings."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..kernels import RasterConfig
+from ..pose import Pose
+from ..render import get_renderer
+from ..scene import GaussianScene
+from .config import RefineConfig
+from .image import check_size, load_image
+from .scorer import Scorer
+from .search import LatticeSpace, PaperSpace, best_first
+
+logger = logging.getLogger("hgsloc_plugin")
+
+
+@dataclass
+class LevelStats:
+    """One step level: its steps, scoring size, expansions, renders, best cost and why it stopped."""
+
+    step_rot_deg: float
+    step_t: float
+    width: int
+    height: int
+    expansions: int
+    renders: int
+    best_cost: float
+    stopped: str
+
+
+@dataclass
+class RefineResult:
+    """Result of one query.
+
+    Attributes:
+        pose: refined world-to-camera pose (the coarse pose when ``accepted`` is False).
+        initial_pose: the coarse pose given.
+        cost_initial / cost_final: heuristic at the final scoring resolution, coarse vs returned pose.
+        accepted: a pose with a lower cost than the coarse pose was found.
+        expansions / renders: search effort; levels: per-level details; seconds: wall time.
+        history: best cost after each expansion (costs of different levels may use different resolutions).
+        error: set when the query failed (then ``pose`` is the coarse pose).
+    """
+
+    pose: Pose
+    initial_pose: Pose
+    cost_initial: float = math.nan
+    cost_final: float = math.nan
+    accepted: bool = False
+    expansions: int = 0
+    renders: int = 0
+    levels: list[LevelStats] = field(default_factory=list)
+    seconds: float = 0.0
+    history: list[float] = field(default_factory=list)
+    error: str | None = None
+    name: str | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name, "accepted": self.accepted, "cost_initial": self.cost_initial,
+            "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
+            "seconds": round(self.seconds, 4), "error": self.error,
+            "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
+            "levels": [vars(lv) for lv in self.levels],
+        }
+
+
+def median_depth(scene: GaussianScene, camera: Camera, T_cam_world: Pose) -> float:
+    """Median camera z of the Gaussian centres that project into the image (scene extent if none do)."""
+    p = scene.means.astype(np.float64) @ T_cam_world.R.T + T_cam_world.tvec
+    z = p[:, 2]
+    front = z > 1e-6
+    u = camera.fx * p[front, 0] / z[front] + camera.cx
+    v = camera.fy * p[front, 1] / z[front] + camera.cy
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    zs = z[front][inside]
+    return float(np.median(zs)) if zs.size else max(scene.extent(), 1e-6)
+
+
+class HGSLocPlugin:
+    """Pose refiner over one 3DGS scene.
+
+    Example:
+        >>> refiner = HGSLocPlugin("point_cloud.ply")
+        >>> result = refiner.refine(image, camera, coarse_pose)
+        >>> result.pose, result.accepted
+
+    Convention: poses are world-to-camera (COLMAP cam_from_world), quaternions w, x, y, z.
+    """
+
+    def __init__(self, scene: GaussianScene | str | Path, config: RefineConfig | None = None,
+                 raster: RasterConfig | None = None):
+        if isinstance(scene, (str, Path)):
+            scene = GaussianScene.from_ply(scene)
+        if not isinstance(scene, GaussianScene):
+            raise TypeError(f"scene must be a GaussianScene or a path to a .ply, got {type(scene).__name__}")
+        self.scene = scene
+        self.config = config or RefineConfig()
+        self.renderer = get_renderer(scene, raster)
+
+    def _levels(self, camera: Camera, coarse: Pose) -> tuple[list[tuple[float, float]], float]:
+        cfg = self.config
+        depth = median_depth(self.scene, camera, coarse)
+        if cfg.neighbourhood == "paper":
+            levels = [(cfg.paper_step_q, cfg.paper_step_t)]
+        elif cfg.levels:
+            levels = list(cfg.levels)
+        else:
+            f = 0.5 * (camera.fx + camera.fy)
+            levels = [(math.degrees(px / f), px * depth / f) for px in cfg.level_pixels]
+        return levels, depth
+
+    def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None) -> RefineResult:
+        """Refine one query.
+
+        Args:
+            image: [H, W, 3] uint8 or float in [0, 1], torch [3, H, W], or a path; its size must match ``camera``.
+            camera: the query's pinhole intrinsics at the image's size.
+            coarse_pose: world-to-camera prior.
+
+        Returns:
+            A :class:`RefineResult`; its pose never has a higher cost than the coarse pose.
+        """
+        t0 = time.perf_counter()
+        cfg = self.config
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
+        if not isinstance(coarse_pose, Pose):
+            raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
+        img = check_size(load_image(image, name=name or "image"), camera, cfg.resize_query, name or "image")
+        cam_final = camera.with_max_side(cfg.score_max_side)
+        cam_coarse = cam_final.scaled(cfg.coarse_scale) if cfg.coarse_scale < 1 else cam_final
+        levels, depth = self._levels(cam_final, coarse_pose)
+        max_t = cfg.max_translation if cfg.max_translation is not None else 0.5 * depth
+        c0 = coarse_pose.centre()
+        R0 = coarse_pose.R
+
+        def allowed(T: Pose) -> bool:
+            if np.linalg.norm(T.centre() - c0) > max_t:
+                return False
+            from ..pose import rotation_angle_deg
+
+            return rotation_angle_deg(R0, T.R) <= cfg.max_rotation_deg
+
+        scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)
+        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)
+        scorer.set_query(cam_final, img)
+        result.cost_initial = float(scorer([coarse_pose])[0])
+        best_pose, best_cost, best_cam = coarse_pose, result.cost_initial, cam_final
+        remaining = cfg.max_expansions
+        for li, (s_rot, s_t) in enumerate(levels):
+            if remaining <= 0:
+                break
+            cam_l = cam_final if (li == len(levels) - 1 or len(levels) == 1) else cam_coarse
+            if cam_l != best_cam:
+                scorer.set_query(cam_l, img)
+                best_cost = float(scorer([best_pose])[0])
+                best_cam = cam_l
+            if cfg.neighbourhood == "paper":
+                space = PaperSpace(best_pose, s_rot, s_t)
+            else:
+                space = LatticeSpace(best_pose, math.radians(s_rot), s_t, depth if cfg.pivot else 0.0)
+            lr = best_first(space, best_cost, scorer, allowed, budget=min(cfg.max_expansions_per_level, remaining),
+                            patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost,
+                            pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
+            remaining -= lr.expansions
+            best_pose, best_cost = space.pose(lr.best_key), lr.best_cost
+            result.expansions += lr.expansions
+            result.history.extend(lr.history)
+            result.levels.append(LevelStats(s_rot, s_t, cam_l.width, cam_l.height, lr.expansions, lr.renders,
+                                            lr.best_cost, lr.stopped))
+        if best_cam != cam_final:
+            scorer.set_query(cam_final, img)
+            best_cost = float(scorer([best_pose])[0])
+        if best_cost < result.cost_initial:
+            result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
+        else:
+            result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
+        result.renders = scorer.renders
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining") -> list[RefineResult]:
+        """Refine many queries in order; one failure is recorded in its result, never raised.
+
+        Args:
+            items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
+                or dicts with those keys.
+        """
+        from tqdm import tqdm
+
+        items = list(items)
+        out: list[RefineResult] = []
+        for it in tqdm(items, desc=desc, disable=not progress, unit="query"):
+            if isinstance(it, dict):
+                image, camera, coarse, name = it["image"], it["camera"], it["coarse_pose"], it.get("name")
+            else:
+                image, camera, coarse, *rest = it
+                name = rest[0] if rest else None
+            try:
+                out.append(self.refine(image, camera, coarse, name=name))
+            except Exception as exc:  # recorded per query, the batch goes on
+                logger.warning("query %s failed: %s", name, exc)
+                pose = coarse if isinstance(coarse, Pose) else Pose.identity()
+                out.append(RefineResult(pose=pose, initial_pose=pose, error=f"{type(exc).__name__}: {exc}",
+                                        name=name))
+        ok = sum(r.accepted for r in out)
+        logger.info("Refined %d / %d queries", ok, len(out))
+        return out

@@ -1,0 +1,56 @@
+"""Heuristics: image cost of rendered candidate poses against the query, batched."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..camera import Camera
+from ..costs import cost_from_stats
+from ..pose import Pose
+from ..render import Renderer
+from .image import resize_image
+
+
+class Scorer:
+    """Scores batches of poses against one query at one resolution.
+
+    Fused metrics (sad, psnr, ncc, affine) run in the blending kernel; "ssim" renders images and uses kornia.
+    """
+
+    def __init__(self, renderer: Renderer, metric: str, background, mask_alpha: float):
+        self.renderer = renderer
+        self.metric = metric
+        self.background = tuple(background)
+        self.mask_alpha = float(mask_alpha)
+        self.camera: Camera | None = None
+        self.renders = 0
+
+    def set_query(self, camera: Camera, image_full: np.ndarray) -> None:
+        """Prepare the query [H, W, 3] at ``camera``'s (scoring) size."""
+        self.camera = camera
+        self.query = resize_image(image_full, camera.width, camera.height)
+        if self.metric == "ssim":
+            self._q = torch.from_numpy(self.query).permute(2, 0, 1)[None]
+        else:
+            self.renderer.set_target(camera, self.query)
+
+    def __call__(self, poses: list[Pose]) -> np.ndarray:
+        """Costs [B] (float64) of the poses; lower is better."""
+        if not poses:
+            return np.zeros(0)
+        self.renders += len(poses)
+        cam = self.camera
+        if self.metric == "ssim":
+            import kornia
+
+            rgb, alpha, _ = self.renderer.render_full(cam, poses, self.background)
+            r = torch.from_numpy(rgb).permute(0, 3, 1, 2)
+            q = self._q.expand(len(poses), -1, -1, -1)
+            s = kornia.metrics.ssim(r, q, window_size=11)  # [B, 3, H, W]
+            if self.mask_alpha > 0:
+                m = torch.from_numpy(alpha >= self.mask_alpha)[:, None].float()
+                return (1.0 - (s * m).sum((1, 2, 3)) / (3 * m.sum((1, 2, 3)).clamp(min=1))).double().numpy()
+            return (1.0 - s.mean((1, 2, 3))).double().numpy()
+        stats = self.renderer.cost_stats(cam, poses, self.background, self.mask_alpha)
+        return cost_from_stats(stats, self.metric, cam.width * cam.height)

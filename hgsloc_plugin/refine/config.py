@@ -44,9 +44,9 @@ class RefineConfig:
     level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25)
     max_expansions_per_level: int = 30
     max_expansions: int = 150
-    patience: int = 1
+    patience: int = 2
     pivot: bool = True
-    pattern_moves: bool = True
+    pattern_moves: bool = False
     heuristic_weight: float = 1.0
     depth_cost: float = 0.0
     score_max_side: int = 160

@@ -25,10 +25,12 @@ class Scorer:
         self.mask_alpha = float(mask_alpha)
         self.camera: Camera | None = None
         self.renders = 0
+        self._cache: dict[bytes, float] = {}  # costs at the current query resolution, keyed by exact pose
 
     def set_query(self, camera: Camera, image_full: np.ndarray) -> None:
         """Prepare the query [H, W, 3] at ``camera``'s (scoring) size."""
         self.camera = camera
+        self._cache = {}
         self.query = resize_image(image_full, camera.width, camera.height)
         if self.metric == "ssim":
             self._q = torch.from_numpy(self.query).permute(2, 0, 1)[None]
@@ -36,7 +38,17 @@ class Scorer:
             self.renderer.set_target(camera, self.query)
 
     def __call__(self, poses: list[Pose]) -> np.ndarray:
-        """Costs [B] (float64) of the poses; lower is better."""
+        """Costs [B] (float64) of the poses; lower is better. A pose already scored at this resolution
+        (bit-identical, e.g. a coarse level's node met again by a finer lattice) is not rendered again."""
+        keys = [p.as_array().tobytes() for p in poses]
+        todo = [k for k in dict.fromkeys(keys) if k not in self._cache]
+        if todo:
+            by_key = dict(zip(keys, poses))
+            costs = self._score([by_key[k] for k in todo])
+            self._cache.update(zip(todo, (float(c) for c in costs)))
+        return np.array([self._cache[k] for k in keys], dtype=np.float64)
+
+    def _score(self, poses: list[Pose]) -> np.ndarray:
         if not poses:
             return np.zeros(0)
         self.renders += len(poses)

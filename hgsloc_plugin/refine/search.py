@@ -97,8 +97,8 @@ def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarra
     """Best-first search from the origin key; f = depth_cost * g + weight * h.
 
     Each expansion pops the open node of least f (ties broken by the integer key, so runs are reproducible),
-    scores all its children not seen before (plus, with ``pattern``, the node that repeats the move that
-    reached it) in one batched call, and pushes them. A node's cost is never
+    scores all its children not seen before (plus, with ``pattern``, the node two steps further along the
+    move that reached it) in one batched call, and pushes them. A node's cost is never
     computed twice; children outside the trust region (``allowed`` False) are never scored nor expanded.
     The level stops after ``budget`` expansions, when the open list is empty, or after ``patience``
     consecutive expansions that did not lower the best cost (patience 0: never).
@@ -117,8 +117,10 @@ def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarra
         closed.add(key)
         kids, poses = [], []
         cands = space.neighbours(key)
-        if pattern and key in parent:  # Hooke-Jeeves pattern move: continue the last step
-            cands.append(tuple(2 * a - b for a, b in zip(key, parent[key])))
+        if pattern and key in parent:  # pattern move: jump two more steps along the move that reached key
+            jump = tuple(3 * a - 2 * b for a, b in zip(key, parent[key]))
+            if jump not in cands:
+                cands.append(jump)
         for k in cands:
             if k in costs:
                 continue

@@ -1,0 +1,192 @@
+"""The heuristic pose search: convergence, keep-best, lattice bookkeeping, determinism, API errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.demo.queries import query_poses
+from hgsloc_plugin.demo.scene import make_room_scene
+from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.refine.search import LatticeSpace, PaperSpace, best_first
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_room_scene(density=0.5)
+
+
+CAM = hp.Camera.from_fov(160, 120, 65.0)
+
+
+def _pose_cost(target: hp.Pose):
+    """Analytic stand-in for an image cost: weighted pose distance to ``target``."""
+
+    def score(poses):
+        out = []
+        for p in poses:
+            dt, dr = p.errors_to(target)
+            out.append(100 * dt + math.radians(dr) * 50)
+        return np.array(out)
+
+    return score
+
+
+def test_lattice_search_converges_and_never_rescores():
+    truth = hp.Pose.look_at([0.1, 0.2, 1.4], [2.0, 1.0, 1.2])
+    start = se3_noise(truth, 2.0, 0.05, np.random.default_rng(3))
+    seen = []
+    score = _pose_cost(truth)
+
+    def recording(poses):
+        seen.extend(p.as_array().tobytes() for p in poses)
+        return score(poses)
+
+    pose, cost = start, float(score([start])[0])
+    for px in (4, 2, 1, 0.5, 0.25):
+        seen.clear()
+        space = LatticeSpace(pose, px / 125, px * 2.5 / 125, pivot_depth=0.0)
+        res = best_first(space, cost, recording, lambda p: True, budget=60, patience=3, weight=1.0, depth_cost=0.0)
+        assert res.best_cost <= cost
+        pose, cost = space.pose(res.best_key), res.best_cost
+        assert len(seen) == len(set(seen)), "a pose was scored twice within a level"
+    dt, dr = pose.errors_to(truth)
+    assert dt < 0.005 and dr < 0.2, (dt, dr)
+
+
+def test_lattice_keys_are_unique_within_a_level():
+    truth = hp.Pose.identity()
+    start = se3_noise(truth, 1.0, 0.02, np.random.default_rng(0))
+    keys = []
+    space = LatticeSpace(start, 0.01, 0.01, 2.0)
+    orig_pose = space.pose
+
+    def spy(key):
+        keys.append(key)
+        return orig_pose(key)
+
+    space.pose = spy
+    best_first(space, 1e9, _pose_cost(truth), lambda p: True, budget=40, patience=0, weight=1.0, depth_cost=1.0)
+    scored = keys[:-0 or None]
+    assert len(scored) == len(set(scored)), "a lattice key was built twice"
+    assert all(isinstance(k, tuple) and all(isinstance(v, int) for v in k) for k in keys)
+
+
+def test_paper_neighbourhood_gives_proper_rotations():
+    base = hp.Pose([0.9, 0.1, -0.3, 0.2], [0.1, 0.2, 0.3])
+    space = PaperSpace(base, 1e-2, 1e-2)
+    keys = space.neighbours((0,) * 7)
+    assert len(keys) == 14
+    for k in keys + [(3, -2, 5, 1, 0, 0, 0)]:
+        R = space.pose(k).R
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+        assert np.linalg.norm(space.pose(k).qvec) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_trust_region_is_respected():
+    truth = hp.Pose.identity()
+    far = se3_noise(truth, 0.0, 0.5, np.random.default_rng(1))  # the optimum is 50 cm away
+    space = LatticeSpace(far, 0.0, 0.05)
+    centre = far.centre()
+    res = best_first(space, 1e9, _pose_cost(truth), lambda p: np.linalg.norm(p.centre() - centre) <= 0.1,
+                     budget=100, patience=0, weight=1.0, depth_cost=0.0)
+    assert np.linalg.norm(space.pose(res.best_key).centre() - centre) <= 0.1 + 1e-12
+
+
+@pytest.mark.parametrize("metric", ["sad", "affine"])
+def test_refine_reduces_error_on_rendered_queries(room, metric):
+    gts = query_poses(3, seed=4)
+    imgs = hp.render(room, CAM, gts)
+    refiner = hp.HGSLocPlugin(room, hp.RefineConfig(metric=metric, patience=2))
+    rng = np.random.default_rng(0)
+    before, after = [], []
+    for gt, im in zip(gts, imgs):
+        coarse = se3_noise(gt, 1.5, 0.04, rng)
+        r = refiner.refine(im, CAM, coarse)
+        assert r.accepted and r.cost_final < r.cost_initial
+        assert r.renders > 0 and r.expansions > 0 and len(r.levels) == 5
+        before.append(coarse.errors_to(gt))
+        after.append(r.pose.errors_to(gt))
+    b, a = np.median(before, 0), np.median(after, 0)
+    assert a[0] < b[0] / 3 and a[1] < b[1] / 3, f"before {b}, after {a}"
+
+
+def test_keep_best_on_noise_query(room):
+    gt = query_poses(1, seed=9)[0]
+    noise = np.random.default_rng(0).uniform(size=(120, 160, 3)).astype(np.float32)
+    refiner = hp.HGSLocPlugin(room, hp.RefineConfig.preset("fast", metric="sad"))
+    r = refiner.refine(noise, CAM, gt)
+    assert r.cost_final <= r.cost_initial
+    if not r.accepted:
+        assert r.pose == gt
+
+
+def test_refine_is_deterministic(room):
+    gt = query_poses(1, seed=2)[0]
+    img = hp.render(room, CAM, gt)
+    coarse = se3_noise(gt, 1.0, 0.03, np.random.default_rng(5))
+    cfg = hp.RefineConfig.preset("fast")
+    a = hp.HGSLocPlugin(room, cfg).refine(img, CAM, coarse)
+    b = hp.HGSLocPlugin(room, cfg).refine(img, CAM, coarse)
+    assert a.pose == b.pose and a.renders == b.renders and a.cost_final == b.cost_final
+
+
+def test_image_inputs_and_size_errors(room, tmp_path):
+    import torch
+    from PIL import Image
+
+    gt = query_poses(1, seed=3)[0]
+    img = hp.render(room, CAM, gt)
+    cfg = hp.RefineConfig.preset("fast", max_expansions=2)
+    ref = hp.HGSLocPlugin(room, cfg)
+    u8 = (img * 255).round().astype(np.uint8)
+    path = tmp_path / "q.png"
+    Image.fromarray(u8).save(path)
+    r1 = ref.refine(u8, CAM, gt)
+    r2 = ref.refine(path, CAM, gt)
+    r3 = ref.refine(torch.from_numpy(u8.astype(np.float32) / 255).permute(2, 0, 1), CAM, gt)
+    assert r1.pose == r2.pose == r3.pose
+
+
+def test_scorer_never_renders_a_pose_twice(room):
+    from hgsloc_plugin.refine.scorer import Scorer
+
+    gt = query_poses(1, seed=3)[0]
+    img = hp.render(room, CAM, gt)
+    sc = Scorer(hp.render.__globals__["get_renderer"](room), "sad", (0, 0, 0), 0.0)
+    sc.set_query(CAM, img)
+    p2 = gt.perturbed_in_camera([0, 0.01, 0], [0, 0, 0])
+    a = sc([gt, p2, gt])
+    b = sc([p2, gt])
+    assert sc.renders == 2 and a[0] == a[2] == b[1] and a[1] == b[0]
+    assert a[0] < a[1]
+    with pytest.raises(ValueError, match="160x120"):
+        ref.refine(np.zeros((100, 100, 3), np.float32), CAM, gt)
+    resized = hp.HGSLocPlugin(room, cfg.replace(resize_query=True)).refine(np.zeros((60, 80, 3), np.float32), CAM, gt)
+    assert resized.renders > 0
+
+
+def test_refine_many_records_failures(room):
+    gt = query_poses(1, seed=1)[0]
+    img = hp.render(room, CAM, gt)
+    ref = hp.HGSLocPlugin(room, hp.RefineConfig.preset("fast", max_expansions=3))
+    out = ref.refine_many([(img, CAM, gt, "good"), (np.zeros((5, 5, 3)), CAM, gt, "bad"), (img, CAM, gt, "again")],
+                          progress=False)
+    assert [r.name for r in out] == ["good", "bad", "again"]
+    assert out[1].error and "ValueError" in out[1].error and out[1].pose == gt
+    assert out[0].error is None and out[2].error is None
+
+
+def test_config_presets_and_validation():
+    assert hp.RefineConfig.preset("paper").neighbourhood == "paper"
+    assert hp.RefineConfig.preset("fast").max_expansions < hp.RefineConfig.preset("accurate").max_expansions
+    with pytest.raises(ValueError):
+        hp.RefineConfig(metric="nope")
+    with pytest.raises(ValueError):
+        hp.RefineConfig.preset("nope")
+    with pytest.raises(Exception):
+        hp.RefineConfig().metric = "sad"  # frozen

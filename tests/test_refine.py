@@ -150,6 +150,10 @@ def test_image_inputs_and_size_errors(room, tmp_path):
     r2 = ref.refine(path, CAM, gt)
     r3 = ref.refine(torch.from_numpy(u8.astype(np.float32) / 255).permute(2, 0, 1), CAM, gt)
     assert r1.pose == r2.pose == r3.pose
+    with pytest.raises(ValueError, match="160x120"):
+        ref.refine(np.zeros((100, 100, 3), np.float32), CAM, gt)
+    resized = hp.HGSLocPlugin(room, cfg.replace(resize_query=True)).refine(np.zeros((60, 80, 3), np.float32), CAM, gt)
+    assert resized.renders > 0
 
 
 def test_scorer_never_renders_a_pose_twice(room):
@@ -164,10 +168,6 @@ def test_scorer_never_renders_a_pose_twice(room):
     b = sc([p2, gt])
     assert sc.renders == 2 and a[0] == a[2] == b[1] and a[1] == b[0]
     assert a[0] < a[1]
-    with pytest.raises(ValueError, match="160x120"):
-        ref.refine(np.zeros((100, 100, 3), np.float32), CAM, gt)
-    resized = hp.HGSLocPlugin(room, cfg.replace(resize_query=True)).refine(np.zeros((60, 80, 3), np.float32), CAM, gt)
-    assert resized.renders > 0
 
 
 def test_refine_many_records_failures(room):

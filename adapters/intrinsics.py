@@ -1,0 +1,97 @@
+"""Where a query's intrinsics come from: one focal, a pGT file, HLoc's query list, or a COLMAP model."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from hgsloc_plugin.camera import Camera
+
+from .names import canonical_name
+
+#: (name, image width, image height) -> Camera
+IntrinsicsFn = Callable[[str, int, int], Camera]
+
+
+def from_focal(focal: float) -> IntrinsicsFn:
+    """One focal length, principal point at the image centre (ACE / 7-Scenes style)."""
+    if not focal > 0:
+        raise ValueError(f"focal length must be positive, got {focal}")
+    return lambda name, w, h: Camera.from_focal(w, h, focal)
+
+
+def from_pgt(path) -> IntrinsicsFn:
+    """Per-image focal from a pseudo-ground-truth file's 9th column, centred principal point."""
+    from .pgt import focals, read_poses
+
+    table = {canonical_name(k): v for k, v in focals(read_poses(path)).items()}
+
+    def get(name, w, h):
+        f = table.get(canonical_name(name))
+        if f is None:
+            raise KeyError(f"{path}: no focal for query {name!r}")
+        return Camera.from_focal(w, h, f)
+
+    return get
+
+
+def parse_query_list(path, *, allow_distortion: bool = False) -> dict[str, Camera]:
+    """HLoc ``queries_with_intrinsics.txt``: ``name MODEL width height params...`` (COLMAP order)."""
+    path = Path(path)
+    out = {}
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        tok = line.split()
+        if len(tok) < 5:
+            raise ValueError(f"{path}:{i}: expected 'name MODEL width height params...', got {len(tok)} tokens")
+        try:
+            w, h = int(tok[2]), int(tok[3])
+            params = [float(x) for x in tok[4:]]
+        except ValueError as exc:
+            raise ValueError(f"{path}:{i}: {exc}") from exc
+        try:
+            out[canonical_name(tok[0])] = Camera.from_colmap(tok[1], w, h, params, allow_distortion=allow_distortion)
+        except (ValueError, IndexError) as exc:
+            raise ValueError(f"{path}:{i}: {exc}") from exc
+    return out
+
+
+def _scaled_to(cam: Camera, w: int, h: int) -> Camera:
+    if (cam.width, cam.height) == (w, h):
+        return cam
+    sx, sy = w / cam.width, h / cam.height
+    return Camera(w, h, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy)
+
+
+def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
+    """Cameras from HLoc's query list, rescaled to the image's actual size if it differs."""
+    table = parse_query_list(path, allow_distortion=allow_distortion)
+
+    def get(name, w, h):
+        cam = table.get(canonical_name(name))
+        if cam is None:
+            raise KeyError(f"{path}: query {name!r} is not in the list")
+        return _scaled_to(cam, w, h)
+
+    return get
+
+
+def from_colmap(model_dir, *, allow_distortion: bool = False) -> IntrinsicsFn:
+    """Cameras of a COLMAP model (read with pycolmap), looked up by image name."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(model_dir))
+    table = {}
+    for img in rec.images.values():
+        table[canonical_name(img.name)] = Camera.from_pycolmap(rec.cameras[img.camera_id],
+                                                              allow_distortion=allow_distortion)
+
+    def get(name, w, h):
+        cam = table.get(canonical_name(name))
+        if cam is None:
+            raise KeyError(f"{model_dir}: image {name!r} is not in the COLMAP model")
+        return _scaled_to(cam, w, h)
+
+    return get

@@ -1,0 +1,187 @@
+"""Pose files of the localizers, read losslessly and written back in the same dialect (CONVENTIONS §2).
+
+A :class:`PoseFile` keeps every line of the input: records (name, pose, extra columns) and any other line
+(Marepo's spilled error tensors), so that writing it back with no pose changed gives the same bytes.
+Failed priors (non-finite values or a zero quaternion, as ACE writes for an exact identity) are kept with
+``pose = None`` and passed through unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hgsloc_plugin.pose import Pose
+from hgsloc_plugin.scene import atomic_write_bytes
+
+from .names import canonical_name
+
+IMAGE_EXT = (".png", ".jpg", ".jpeg")
+DIALECTS = ("hloc", "ace", "marepo", "pgt", "generic")
+#: tokens per record line of each dialect
+COLUMNS = {"hloc": 8, "generic": 8, "marepo": 8, "ace": 11, "pgt": 9}
+
+
+@dataclass
+class Record:
+    """One pose line: raw text, its 1-based line number, name, pose (None = failed prior), all tokens."""
+
+    line_no: int
+    raw: str
+    name: str
+    pose: Pose | None
+    tokens: list[str]
+
+
+@dataclass
+class PoseFile(Mapping):
+    """An ordered mapping name -> Pose (failed priors map to None) plus what is needed to write it back."""
+
+    path: Path
+    dialect: str
+    lines: list[str]  # every line without its newline
+    records: list[Record] = field(default_factory=list)
+    final_newline: bool = True
+
+    def __post_init__(self) -> None:
+        self._by_name = {r.name: r for r in self.records}
+
+    def __getitem__(self, name: str) -> Pose | None:
+        return self._by_name[name].pose
+
+    def __iter__(self) -> Iterator[str]:
+        return (r.name for r in self.records)
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def record(self, name: str) -> Record:
+        return self._by_name[name]
+
+    def by_canonical(self) -> dict[str, str]:
+        """canonical name -> name as written in this file."""
+        return {canonical_name(r.name): r.name for r in self.records}
+
+
+def _is_float(tok: str) -> bool:
+    try:
+        float(tok)
+        return True
+    except ValueError:
+        return False
+
+
+def _looks_like_record(tokens: list[str]) -> bool:
+    return (len(tokens) >= 8 and tokens[0].lower().endswith(IMAGE_EXT)
+            and all(_is_float(t) and math.isfinite(float(t)) for t in tokens[1:8]))
+
+
+def _make_pose(tokens: list[str]) -> Pose | None:
+    vals = [float(t) for t in tokens[1:8]]
+    try:
+        return Pose(vals[:4], vals[4:])
+    except ValueError:
+        return None
+
+
+def detect_dialect(path: Path, lines: list[str]) -> str:
+    """Guess the dialect from the token counts of the lines."""
+    counts = set()
+    junk = False
+    for ln in lines:
+        tok = ln.split()
+        if not tok:
+            continue
+        if _looks_like_record(tok) or (len(tok) in (8, 9, 11) and tok[0].lower().endswith(IMAGE_EXT)):
+            counts.add(len(tok))
+        else:
+            junk = True
+    if junk:
+        if counts <= {8}:
+            return "marepo"
+        raise ValueError(f"{path}: cannot detect the pose-file dialect (lines that are not pose records, "
+                         f"record widths {sorted(counts)})")
+    if counts == {11}:
+        return "ace"
+    if counts == {9}:
+        return "pgt"
+    if counts == {8}:
+        return "hloc"
+    if not counts:
+        raise ValueError(f"{path}: no pose records found")
+    raise ValueError(f"{path}: mixed record widths {sorted(counts)}; expected 8 (hloc), 9 (pgt) or 11 (ace)")
+
+
+def read_poses(path, dialect: str = "auto") -> PoseFile:
+    """Read a pose file; raises ValueError naming file and line for a malformed line.
+
+    Args:
+        path: the file. dialect: "auto", or one of ``DIALECTS``.
+
+    Returns:
+        A :class:`PoseFile` (ordered mapping name -> world-to-camera Pose, w x y z quaternions).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: pose file not found")
+    text = path.read_text(encoding="utf-8", errors="strict")
+    final_newline = text.endswith("\n")
+    lines = text.split("\n")
+    if final_newline:
+        lines = lines[:-1]
+    if dialect == "auto":
+        dialect = detect_dialect(path, lines)
+    if dialect not in DIALECTS:
+        raise ValueError(f"unknown dialect {dialect!r}; choose from {DIALECTS}")
+    width = COLUMNS[dialect]
+    records, seen = [], {}
+    for i, ln in enumerate(lines, 1):
+        tok = ln.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        if dialect == "marepo":
+            if not _looks_like_record(tok) or len(tok) != 8:
+                continue  # spilled error tensors: not a record
+        else:
+            if len(tok) != width:
+                raise ValueError(f"{path}:{i}: expected {width} columns ({dialect}), got {len(tok)}")
+            bad = [t for t in tok[1:] if not _is_float(t)]
+            if bad:
+                raise ValueError(f"{path}:{i}: not a number: {bad[0]!r}")
+        if tok[0] in seen:
+            raise ValueError(f"{path}:{i}: image {tok[0]!r} appears twice (first at line {seen[tok[0]]})")
+        seen[tok[0]] = i
+        records.append(Record(i, ln, tok[0], _make_pose(tok), tok))
+    if not records:
+        raise ValueError(f"{path}: no pose records found")
+    return PoseFile(path, dialect, lines, records, final_newline)
+
+
+def format_pose_tokens(pose: Pose) -> list[str]:
+    """qw qx qy qz tx ty tz as shortest round-trip decimal strings."""
+    return [repr(float(v)) for v in pose.as_array()]
+
+
+def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
+    """Write ``like``'s file with the poses in ``poses`` replaced; everything else is copied verbatim.
+
+    The columns, line order, name strings and extra columns (ACE errors, pGT focal) stay as in the input; a
+    line whose pose is unchanged (or absent from ``poses``) is written byte for byte. Atomic; never writes over
+    the input file.
+    """
+    path = Path(path)
+    if path.exists() and like.path.exists() and path.resolve() == like.path.resolve():
+        raise ValueError(f"{path}: refusing to overwrite the input pose file")
+    by_line = {r.line_no: r for r in like.records}
+    out = []
+    for i, ln in enumerate(like.lines, 1):
+        r = by_line.get(i)
+        if r is not None and r.name in poses and poses[r.name] is not None and poses[r.name] != r.pose:
+            out.append(" ".join([r.name] + format_pose_tokens(poses[r.name]) + r.tokens[8:]))
+        else:
+            out.append(ln)
+    text = "\n".join(out) + ("\n" if like.final_newline else "")
+    atomic_write_bytes(path, text.encode("utf-8"))
+    return path

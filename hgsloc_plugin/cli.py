@@ -1,0 +1,180 @@
+"""The ``hgsloc`` command line: refine, evaluate, render, demo. User errors end in one line, exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+
+
+def _intrinsics(args):
+    from .adapters import intrinsics as intr
+
+    given = [x for x in (args.focal, args.intrinsics, args.colmap, args.pgt_focal) if x is not None]
+    if len(given) != 1:
+        raise ValueError("give exactly one of --focal, --intrinsics, --colmap, --pgt-focal")
+    if args.focal is not None:
+        return intr.from_focal(args.focal)
+    if args.intrinsics is not None:
+        return intr.from_query_list(args.intrinsics, allow_distortion=args.allow_distortion)
+    if args.colmap is not None:
+        return intr.from_colmap(args.colmap, allow_distortion=args.allow_distortion)
+    return intr.from_pgt(args.pgt_focal)
+
+
+def cmd_refine(args) -> int:
+    from .pipeline import refine_pose_file
+    from .refine import RefineConfig
+
+    overrides = {}
+    if args.metric:
+        overrides["metric"] = args.metric
+    if args.white_background:
+        overrides["background"] = (1.0, 1.0, 1.0)
+    config = RefineConfig.preset(args.config, **overrides)
+    if Path(args.out).resolve() == Path(args.poses).resolve():
+        raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    rep = refine_pose_file(args.scene, Path(args.poses), Path(args.images), _intrinsics(args), Path(args.out),
+                           config=config, limit=args.limit, gt_variant=args.gt_variant,
+                           figures=Path(args.figures) if args.figures else None, progress=not args.quiet)
+    t = rep["totals"]
+    print(f"refined {t['accepted']} / {t['queries']} queries ({t['failed']} failed), {t['renders']} renders, "
+          f"{t['seconds']:.1f} s -> {args.out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .adapters import read_poses
+    from .evaluate import evaluate, mean_over_scenes
+
+    if len(args.poses) != len(args.gt):
+        raise ValueError("give one --gt per --poses (one pair per scene)")
+    results = []
+    for p, g in zip(args.poses, args.gt):
+        r = evaluate(read_poses(p), read_poses(g))
+        r.pop("errors")
+        r["poses"], r["gt"] = p, g
+        results.append(r)
+    if args.json:
+        out = results[0] if len(results) == 1 else {"scenes": results, "mean": mean_over_scenes(results)}
+        print(json.dumps(out, indent=1))
+        return 0
+    for r in results:
+        rc = r["recall"]
+        print(f"{r['poses']}: n={r['n']} missing={r['missing']} median {r['median_translation_cm']:.2f} cm / "
+              f"{r['median_rotation_deg']:.3f} deg, recall 5cm5deg {100 * rc['5cm5deg']:.1f}% "
+              f"2cm2deg {100 * rc['2cm2deg']:.1f}% 1cm1deg {100 * rc['1cm1deg']:.1f}%")
+    if len(results) > 1:
+        m = mean_over_scenes(results)
+        rc = m["recall"]
+        print(f"mean over {m['scenes']} scenes: {m['median_translation_cm']:.2f} cm / {m['median_rotation_deg']:.3f} "
+              f"deg, {100 * rc['5cm5deg']:.1f} / {100 * rc['2cm2deg']:.1f} / {100 * rc['1cm1deg']:.1f} %")
+    return 0
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.replace(",", " ").split()]
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from exc
+    if len(v) != n:
+        raise ValueError(f"{what}: expected {n} numbers, got {len(v)}")
+    return v
+
+
+def cmd_render(args) -> int:
+    from . import Camera, GaussianScene, Pose, render
+    from .viz import save_png
+
+    p = _floats(args.pose, 7, "--pose 'qw qx qy qz tx ty tz'")
+    c = _floats(args.camera, 6, "--camera 'W H fx fy cx cy'")
+    cam = Camera(int(c[0]), int(c[1]), *c[2:])
+    img = render(GaussianScene.from_ply(args.scene), cam, Pose(p[:4], p[4:]),
+                 background=(1.0, 1.0, 1.0) if args.white_background else (0.0, 0.0, 0.0))
+    save_png(img, args.out)
+    print(f"wrote {args.out} ({cam.width}x{cam.height})")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .demo.run import DEFAULT_NOISE, format_table, run_demo
+
+    noise = args.noise or list(DEFAULT_NOISE)
+    summary = run_demo(Path(args.out), queries=args.queries, noise=noise, preset=args.config,
+                       progress=not args.quiet)
+    print(format_table(summary))
+    print(f"outputs in {args.out}: refined pose files (+ .json reports), figures/")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="hgsloc", description="Heuristic 3DGS camera-pose refinement.")
+    ap.add_argument("--arch", default=None, choices=["auto", "cpu", "cuda"], help="Taichi backend")
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    r = sub.add_parser("refine", help="refine a localizer's pose file (ACE, Marepo, HLoc, pGT, generic)")
+    r.add_argument("--scene", required=True, help="3DGS point_cloud.ply in the frame of the poses")
+    r.add_argument("--poses", required=True, help="input pose file")
+    r.add_argument("--images", required=True, help="folder with the query images")
+    r.add_argument("--focal", type=float, help="one focal length, principal point at the centre")
+    r.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt")
+    r.add_argument("--colmap", help="COLMAP model folder")
+    r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
+    r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
+    r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
+    r.add_argument("--config", default="default", help="preset: default, fast, accurate, paper")
+    r.add_argument("--metric", choices=["sad", "psnr", "ssim", "ncc", "affine"])
+    r.add_argument("--white-background", action="store_true", help="the map was trained on white")
+    r.add_argument("--limit", type=int, help="refine only the first N queries")
+    r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
+    r.add_argument("--figures", help="write comparison figures here")
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=cmd_refine)
+
+    e = sub.add_parser("evaluate", help="median errors and recalls against ground truth")
+    e.add_argument("--poses", required=True, action="append", help="estimates (repeat per scene)")
+    e.add_argument("--gt", required=True, action="append", help="ground truth (repeat per scene)")
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_evaluate)
+
+    d = sub.add_parser("render", help="render a scene at one pose")
+    d.add_argument("--scene", required=True)
+    d.add_argument("--pose", required=True, help='"qw qx qy qz tx ty tz" (world-to-camera)')
+    d.add_argument("--camera", required=True, help='"W H fx fy cx cy"')
+    d.add_argument("--out", required=True)
+    d.add_argument("--white-background", action="store_true")
+    d.set_defaults(func=cmd_render)
+
+    m = sub.add_parser("demo", help="run the whole chain on the embedded procedural room")
+    m.add_argument("--out", default="demo_out")
+    m.add_argument("--queries", type=int, default=6)
+    m.add_argument("--noise", action="append", help="protocol, e.g. '3cm,1deg' or 'q2,t2' (repeatable)")
+    m.add_argument("--config", default="default")
+    m.add_argument("--quiet", action="store_true")
+    m.set_defaults(func=cmd_demo)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    try:
+        from .backend import init
+
+        init(args.arch)
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("hgsloc: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+    except (ValueError, FileNotFoundError, KeyError, OSError, RuntimeError) as exc:
+        msg = str(exc).strip("'\"") or type(exc).__name__
+        print(f"hgsloc: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

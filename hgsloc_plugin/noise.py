@@ -15,9 +15,15 @@ def qt_noise(T_cam_world: Pose, A: int, B: int, rng: np.random.Generator) -> Pos
     k is an integer drawn uniformly from -9..9 per component (seeded by ``rng``); the quaternion is then
     normalised (the official files keep it unnormalised).
     """
+    q, t = qt_noise_raw(T_cam_world, A, B, rng)
+    return Pose(q, t)
+
+
+def qt_noise_raw(T_cam_world: Pose, A: int, B: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The un-normalised (q [4], t [3]) of :func:`qt_noise` (what the paper's files hold)."""
     kq = rng.integers(-9, 10, size=4)
     kt = rng.integers(-9, 10, size=3)
-    return Pose(T_cam_world.qvec + kq * 10.0 ** (-A), T_cam_world.tvec + kt * 10.0 ** (-B))
+    return T_cam_world.qvec + kq * 10.0 ** (-A), T_cam_world.tvec + kt * 10.0 ** (-B)
 
 
 def se3_noise(T_cam_world: Pose, rot_deg: float, trans: float, rng: np.random.Generator) -> Pose:

@@ -1,0 +1,175 @@
+"""Pose-file dialects on the real 7-Scenes files, name matching, intrinsics, and the evaluator anchors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hgsloc_plugin import Pose
+from hgsloc_plugin.adapters import canonical_name, match_names, read_poses, resolve_image, write_poses
+from hgsloc_plugin.adapters.intrinsics import from_pgt, from_query_list, parse_query_list
+from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
+
+from .conftest import shared_path
+
+SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
+FILES = ["ace.txt", "glace.txt", "marepo.txt", "dfnet.txt", "hloc.txt", "pgt_sfm_test.txt"]
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_every_real_file_reads_and_writes_back_byte_identical(tmp_path, scene):
+    root = shared_path("poses", "7scenes", scene)
+    counts = set()
+    for f in FILES:
+        pf = read_poses(root / f)
+        counts.add(len(pf))
+        assert all(p is not None for p in pf.values())
+        out = write_poses(tmp_path / f, dict(pf), like=pf)
+        assert out.read_bytes() == (root / f).read_bytes(), f
+    assert len(counts) == 1
+    assert read_poses(root / "ace.txt").dialect == "ace" and read_poses(root / "pgt_sfm_test.txt").dialect == "pgt"
+
+
+def test_changed_pose_keeps_columns_and_order(tmp_path):
+    src = shared_path("poses", "7scenes", "heads", "ace.txt")
+    pf = read_poses(src)
+    name = list(pf)[5]
+    new = Pose([1, 0, 0, 0], [0.5, -0.25, 2.0])
+    out = write_poses(tmp_path / "o.txt", {name: new}, like=pf)
+    a, b = src.read_text().splitlines(), out.read_text().splitlines()
+    assert len(a) == len(b)
+    diff = [i for i in range(len(a)) if a[i] != b[i]]
+    assert diff == [5]
+    tok_a, tok_b = a[5].split(), b[5].split()
+    assert tok_b[0] == tok_a[0] and tok_b[8:] == tok_a[8:] and len(tok_b) == 11
+    back = read_poses(out)[name]
+    assert back == new
+
+
+def test_evaluator_reproduces_published_anchors():
+    res = {}
+    for loc in ("ace", "marepo"):
+        per = [evaluate(read_poses(shared_path("poses", "7scenes", s, f"{loc}.txt")),
+                        read_poses(shared_path("poses", "7scenes", s, "pgt_sfm_test.txt"))) for s in SCENES]
+        res[loc] = mean_over_scenes(per)
+    ace, mar = res["ace"], res["marepo"]
+    assert round(ace["median_translation_cm"], 2) == 1.09 and round(ace["median_rotation_deg"], 2) == 0.34
+    assert [round(100 * ace["recall"][k], 1) for k in ("5cm5deg", "2cm2deg", "1cm1deg")] == [97.3, 83.3, 56.3]
+    assert round(mar["median_translation_cm"], 2) == 2.92 and round(100 * mar["recall"]["1cm1deg"], 1) == 6.2
+
+
+def test_evaluator_matches_hand_computation():
+    scene = "heads"
+    est = read_poses(shared_path("poses", "7scenes", scene, "ace.txt"))
+    gt = read_poses(shared_path("poses", "7scenes", scene, "pgt_sfm_test.txt"))
+    t, r = [], []
+    est_by = {n.replace("/", "-"): p for n, p in est.items()}
+    for n, g in gt.items():
+        e = est_by[n.replace("/", "-")]
+        t.append(np.linalg.norm(e.centre() - g.centre()))
+        cos = (np.trace(g.R.T @ e.R) - 1) / 2
+        r.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    t, r = np.array(t), np.array(r)
+    ev = evaluate(est, gt)
+    assert ev["median_translation_cm"] == pytest.approx(np.median(t) * 100, rel=1e-9)
+    assert ev["median_rotation_deg"] == pytest.approx(np.median(r), abs=1e-4)
+    assert ev["recall"]["2cm2deg"] == pytest.approx(np.mean((t < 0.02) & (r < 2)))
+    # ACE's own error columns agree with ours
+    cols = np.array([[float(x) for x in est.record(n).tokens[8:10]] for n in est])
+    assert np.median(cols[:, 1]) * 100 == pytest.approx(ev["median_translation_cm"], abs=1e-3)
+
+
+def test_missing_queries_count_as_failures():
+    gt = {f"seq-01/frame-{i:06d}.color.png": Pose.identity() for i in range(4)}
+    est = {"seq-01-frame-000000.color.png": Pose.identity(), "seq-01-frame-000001.color.png": Pose.identity()}
+    ev = evaluate(est, gt)
+    assert ev["missing"] == 2 and ev["recall"]["1cm1deg"] == 0.5
+    assert ev["median_translation_cm"] == float("inf") or ev["median_translation_cm"] > 1e6
+
+
+def test_name_styles_match_every_query():
+    for scene in SCENES:
+        hloc = read_poses(shared_path("poses", "7scenes", scene, "hloc.txt"))
+        ace = read_poses(shared_path("poses", "7scenes", scene, "ace.txt"))
+        m = match_names(list(hloc), list(ace))
+        assert len(m) == len(hloc) == len(ace)
+    assert canonical_name("seq2/frame00001.png") == canonical_name("seq2_frame00001.png")
+    assert canonical_name("data/frame-000178.color.jpg") == canonical_name("frame-000178.color.jpg")
+
+
+def test_resolve_image_across_styles(tmp_path):
+    (tmp_path / "seq-01").mkdir()
+    f = tmp_path / "seq-01" / "frame-000003.color.png"
+    f.write_bytes(b"x")
+    assert resolve_image("seq-01-frame-000003.color.png", tmp_path) == f
+    assert resolve_image("seq-01/frame-000003.color.png", tmp_path) == f
+    with pytest.raises(FileNotFoundError, match="frame-000004"):
+        resolve_image("seq-01-frame-000004.color.png", tmp_path)
+
+
+def test_marepo_spilled_tensors_are_skipped_not_invented(tmp_path):
+    p = tmp_path / "poses_marepo.txt"
+    p.write_text("seq-01-frame-000000.color.png 1 0 0 0 0.1 0.2 0.3 tensor([0.5, 0.6,\n"
+                 "        0.7, 0.8]) tensor([0.01,\n"
+                 "        0.02])\n"
+                 "seq-01-frame-000001.color.png 0.9 0.1 0 0 0.1 0.2 0.3\n")
+    pf = read_poses(p, "marepo")
+    assert list(pf) == ["seq-01-frame-000000.color.png", "seq-01-frame-000001.color.png"] or len(pf) == 1
+    p2 = tmp_path / "clean.txt"
+    p2.write_text("a.png 1 0 0 0 0 0 0\nwrapped 0.1 0.2\nb.png 1 0 0 0 1 1 1\n")
+    pf2 = read_poses(p2)
+    assert pf2.dialect == "marepo" and list(pf2) == ["a.png", "b.png"]
+    assert write_poses(tmp_path / "o.txt", dict(pf2), like=pf2).read_bytes() == p2.read_bytes()
+
+
+@pytest.mark.parametrize("text,match", [
+    ("a.png 1 0 0 0 0 0\n", "columns|dialect|no pose"),
+    ("a.png 1 0 0 0 0 0 0 1 2\nb.png 1 0 0 0 0 0 0 1 2\n", "columns|dialect|widths"),
+    ("a.png 1 0 0 0 0 0 x 1 2 3\n", "not a number|dialect"),
+    ("a.png 1 0 0 0 0 0 0\na.png 1 0 0 0 0 0 0\n", "twice"),
+])
+def test_malformed_files_name_file_and_line(tmp_path, text, match):
+    p = tmp_path / "bad.txt"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=match) as ei:
+        read_poses(p)
+    assert "bad.txt" in str(ei.value)
+
+
+def test_malformed_line_in_known_dialect_names_line(tmp_path):
+    p = tmp_path / "bad.txt"
+    p.write_text("a.png 1 0 0 0 0 0 0 1 2 3\nb.png 1 0 0 0 0 0 0 1 2\n")
+    with pytest.raises(ValueError, match=r"bad.txt:2: expected 11 columns"):
+        read_poses(p, "ace")
+
+
+def test_ace_nan_prior_is_kept_as_failed(tmp_path):
+    p = tmp_path / "ace.txt"
+    p.write_text("a.png nan nan nan nan 0 0 0 1 2 3\nb.png 1 0 0 0 0 0 0 1 2 3\n")
+    pf = read_poses(p, "ace")
+    assert pf["a.png"] is None and pf["b.png"] == Pose.identity()
+    assert write_poses(tmp_path / "o.txt", dict(pf), like=pf).read_bytes() == p.read_bytes()
+
+
+def test_refuses_to_overwrite_input(tmp_path):
+    p = tmp_path / "in.txt"
+    p.write_text("a.png 1 0 0 0 0 0 0\n")
+    pf = read_poses(p)
+    with pytest.raises(ValueError, match="overwrite"):
+        write_poses(p, {"a.png": Pose([1, 0, 0, 0], [1, 0, 0])}, like=pf)
+    assert p.read_text() == "a.png 1 0 0 0 0 0 0\n"
+
+
+def test_intrinsics_sources(tmp_path):
+    f = from_pgt(shared_path("poses", "7scenes", "chess", "pgt_sfm_test.txt"))
+    cam = f("seq-03-frame-000000.color.png", 640, 480)
+    assert cam.fx == 526.22 and cam.cx == 320 and cam.cy == 240
+    q = tmp_path / "queries_with_intrinsics.txt"
+    q.write_text("# comment\nseq-01/frame-000000.color.png SIMPLE_PINHOLE 640 480 525 320 240\n"
+                 "seq-01/frame-000001.color.png PINHOLE 640 480 520 521 319 241\n\n")
+    fn = from_query_list(q)
+    c = fn("seq-01-frame-000001.color.png", 320, 240)
+    assert (c.width, c.fx, c.fy, c.cx) == (320, 260.0, 260.5, 159.5)
+    q.write_text("x.png SIMPLE_RADIAL 640 480 525 320 240 0.1\n")
+    with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:1: .*distortion"):
+        parse_query_list(q)

@@ -1,0 +1,20 @@
+"""The public surface: every exported name imports, and the list is the one we ship."""
+
+import hgsloc_plugin
+
+EXPECTED = ["Camera", "GaussianScene", "HGSLocPlugin", "Pose", "RasterConfig", "RefineConfig", "RefineResult",
+            "Renderer", "current_arch", "init", "render", "render_cost", "render_full"]
+
+
+def test_all_names_import_and_match():
+    assert sorted(hgsloc_plugin.__all__) == sorted(EXPECTED)
+    for name in hgsloc_plugin.__all__:
+        assert getattr(hgsloc_plugin, name) is not None
+
+
+def test_subpackages_are_mapped():
+    import hgsloc_plugin.adapters as a
+    import hgsloc_plugin.kernels as k
+
+    assert hasattr(a, "read_poses") and hasattr(k, "RasterConfig")
+    assert hgsloc_plugin.init() in ("cpu", "cuda")

@@ -1,0 +1,173 @@
+"""End to end: CLI refine -> evaluate round trip with resume, render, errors, the demo, noise protocols."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.adapters import read_poses
+from hgsloc_plugin.cli import main
+from hgsloc_plugin.demo.queries import query_poses
+from hgsloc_plugin.demo.scene import make_room_scene
+from hgsloc_plugin.noise import parse_protocol, qt_noise, qt_noise_raw, se3_noise
+from hgsloc_plugin.viz import save_png
+
+
+@pytest.fixture(scope="module")
+def tiny_case(tmp_path_factory):
+    """A small room scene on disk, 3 queries as PNGs, GT and ACE-dialect coarse poses."""
+    d = tmp_path_factory.mktemp("case")
+    scene = make_room_scene(density=0.35)
+    scene.to_ply(d / "scene.ply")
+    cam = hp.Camera.from_focal(128, 96, 90.0)
+    gts = query_poses(3, seed=11)
+    imgs = hp.render(scene, cam, gts)
+    (d / "images" / "seq-01").mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    gt_lines, ace_lines = [], []
+    for k, (g, im) in enumerate(zip(gts, imgs)):
+        name = f"seq-01/frame-{k:06d}.color.png"
+        save_png(im, d / "images" / name)
+        c = se3_noise(g, 1.0, 0.03, rng)
+        gt_lines.append(" ".join([name] + [repr(float(v)) for v in g.as_array()]))
+        ace_lines.append(" ".join([name.replace("/", "-")] + [repr(float(v)) for v in c.as_array()] + ["1.0", "0.03",
+                                                                                                      "500"]))
+    (d / "gt.txt").write_text("\n".join(gt_lines) + "\n")
+    (d / "ace.txt").write_text("\n".join(ace_lines) + "\n")
+    return d
+
+
+def test_cli_refine_evaluate_and_resume(tiny_case, capsys):
+    d = tiny_case
+    out = d / "refined.txt"
+    args = ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(d / "images"),
+            "--focal", "90", "--out", str(out), "--config", "fast", "--quiet", "--limit", "2"]
+    assert main(args) == 0
+    rep = json.loads((d / "refined.txt.json").read_text())
+    assert len(rep["queries"]) == 2 and rep["dialect"] == "ace"
+    assert read_poses(out).dialect == "ace" and len(read_poses(out)) == 3
+    # resume: the third query is refined, the first two are not redone, no duplicate lines
+    args_all = [a for a in args if a not in ("--limit", "2")]
+    assert main(args_all) == 0
+    rep2 = json.loads((d / "refined.txt.json").read_text())
+    assert len(rep2["queries"]) == 3
+    for n in list(rep["queries"]):
+        assert rep2["queries"][n] == rep["queries"][n]
+    lines = out.read_text().splitlines()
+    assert len(lines) == 3 and len({ln.split()[0] for ln in lines}) == 3
+    capsys.readouterr()
+    assert main(["evaluate", "--poses", str(out), "--gt", str(d / "gt.txt"), "--json"]) == 0
+    after = json.loads(capsys.readouterr().out)
+    assert main(["evaluate", "--poses", str(d / "ace.txt"), "--gt", str(d / "gt.txt"), "--json"]) == 0
+    before = json.loads(capsys.readouterr().out)
+    assert set(after) >= {"n", "missing", "median_translation_cm", "median_rotation_deg", "recall"}
+    assert after["n"] == 3 and after["missing"] == 0
+    assert after["median_translation_cm"] < before["median_translation_cm"] / 2
+    assert 0 <= after["recall"]["1cm1deg"] <= 1
+
+
+def test_cli_user_errors_are_one_line(tiny_case, tmp_path):
+    d = tiny_case
+    cases = [
+        ["refine", "--scene", str(d / "missing.ply"), "--poses", str(d / "ace.txt"), "--images", str(d),
+         "--focal", "90", "--out", str(tmp_path / "o.txt")],
+        ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(d),
+         "--focal", "90", "--out", str(d / "ace.txt")],
+        ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(d),
+         "--out", str(tmp_path / "o.txt")],
+        ["evaluate", "--poses", str(d / "gt.txt"), "--gt", str(tmp_path / "nope.txt")],
+        ["render", "--scene", str(d / "scene.ply"), "--pose", "1 0 0", "--camera", "64 48 50 50 32 24",
+         "--out", str(tmp_path / "x.png")],
+    ]
+    before = (d / "ace.txt").read_bytes()
+    for c in cases:
+        p = subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli"] + c, capture_output=True, text=True)
+        assert p.returncode == 2, (c, p.stderr)
+        err = [ln for ln in p.stderr.splitlines() if ln.startswith("hgsloc")]
+        assert len(err) == 1 and "Traceback" not in p.stderr, p.stderr
+    assert (d / "ace.txt").read_bytes() == before
+
+
+def test_cli_render(tiny_case, tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "r.png"
+    T = query_poses(1, seed=11)[0]
+    pose = " ".join(repr(float(v)) for v in T.as_array())
+    assert main(["render", "--scene", str(tiny_case / "scene.ply"), "--pose", pose, "--camera",
+                 "128 96 90 90 64 48", "--out", str(out)]) == 0
+    a = np.asarray(Image.open(out), dtype=np.float32) / 255
+    b = np.asarray(Image.open(tiny_case / "images" / "seq-01" / "frame-000000.color.png"), dtype=np.float32) / 255
+    assert a.shape == (96, 128, 3) and np.abs(a - b).max() < 1.5 / 255
+
+
+def test_hloc_step(tiny_case, tmp_path):
+    from hgsloc_plugin.adapters import hloc as step
+
+    d = tiny_case
+    q = tmp_path / "queries_with_intrinsics.txt"
+    q.write_text("".join(f"seq-01/frame-{k:06d}.color.png SIMPLE_PINHOLE 128 96 90 64 48\n" for k in range(3)))
+    res = tmp_path / "results.txt"
+    ace = read_poses(d / "ace.txt")
+    res.write_text("".join(" ".join([n.replace("seq-01-", "seq-01/")] + r.tokens[1:8]) + "\n"
+                           for n, r in ((n, ace.record(n)) for n in ace)))
+    out = step.main(d / "scene.ply", q, res, d / "images", tmp_path / "results_refined.txt",
+                    hp.RefineConfig.preset("fast"), limit=1)
+    pf = read_poses(out)
+    assert pf.dialect == "hloc" and list(pf) == list(read_poses(res))
+
+
+def test_demo_runs_and_improves(tmp_path):
+    from hgsloc_plugin.demo.run import run_demo
+
+    s = run_demo(tmp_path / "demo", queries=3, noise=("3cm,1deg",), preset="fast", progress=False)
+    row = s["rows"][0]
+    assert row["after"]["median_translation_cm"] < row["before"]["median_translation_cm"]
+    assert row["after"]["median_rotation_deg"] < row["before"]["median_rotation_deg"]
+    figs = sorted(p.name for p in (tmp_path / "demo" / "figures").iterdir())
+    assert any(f.startswith("compare_") for f in figs) and any(f.startswith("errors_") for f in figs)
+    from PIL import Image
+
+    comp = Image.open(next((tmp_path / "demo" / "figures").glob("compare_*")))
+    assert comp.size == (2 * 320 + 4, 2 * 240 + 4)
+    assert (tmp_path / "demo" / "refined_3cm_1deg.txt.json").exists()
+
+
+def test_demo_scene_is_deterministic(tmp_path):
+    a = make_room_scene(seed=3, density=0.2).to_ply(tmp_path / "a.ply").read_bytes()
+    b = make_room_scene(seed=3, density=0.2).to_ply(tmp_path / "b.ply").read_bytes()
+    assert a == b
+    assert make_room_scene(density=1.0).num_gaussians > 20000
+    assert make_room_scene(density=0.2).sh_degree >= 1
+
+
+def test_noise_protocols_have_exact_magnitudes():
+    rng = np.random.default_rng(0)
+    T = query_poses(1, seed=0)[0]
+    for deg, d in ((0.5, 0.01), (3.0, 0.1)):
+        for _ in range(5):
+            N = se3_noise(T, deg, d, rng)
+            dt, dr = N.errors_to(T)
+            assert dt == pytest.approx(d, abs=1e-12) and dr == pytest.approx(deg, abs=1e-9)
+    for _ in range(5):
+        state = rng.bit_generator.state
+        q, t = qt_noise_raw(T, 2, 1, rng)
+        kq, kt = (q - T.qvec) * 100, (t - T.tvec) * 10
+        np.testing.assert_allclose(kq, np.round(kq), atol=1e-9)
+        np.testing.assert_allclose(kt, np.round(kt), atol=1e-9)
+        assert np.all(np.abs(np.round(kq)) <= 9) and np.all(np.abs(np.round(kt)) <= 9)
+        rng.bit_generator.state = state
+        N = qt_noise(T, 2, 1, rng)
+        assert N == hp.Pose(q, t) and np.linalg.norm(N.qvec) == pytest.approx(1.0)
+    assert parse_protocol("q2,t1") == ("qt", 2, 1)
+    assert parse_protocol("3cm,1deg") == ("se3", 0.03, 1.0)
+    assert parse_protocol("0.1m,2deg")[1] == pytest.approx(0.1)
+    with pytest.raises(ValueError):
+        parse_protocol("banana")
+    assert not math.isnan(parse_protocol("q3_t3")[1])

@@ -20,25 +20,24 @@ from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine import RefineConfig
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
-LOCALIZER = "ace"
 
 
-def main() -> None:
+def main(localizer: str = "ace") -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dataset", type=Path, required=True)
     ap.add_argument("--maps", type=Path, required=True)
     ap.add_argument("--poses-root", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data"
                     / "poses" / "7scenes")
-    ap.add_argument("--out", type=Path, default=Path(f"out/{LOCALIZER}"))
+    ap.add_argument("--out", type=Path, default=Path(f"out/{localizer}"))
     ap.add_argument("--scenes", nargs="+", default=SCENES)
     ap.add_argument("--config", default="default")
     ap.add_argument("--limit", type=int)
     a = ap.parse_args()
     before, after = [], []
     for scene in a.scenes:
-        coarse = a.poses_root / scene / f"{LOCALIZER}.txt"
+        coarse = a.poses_root / scene / f"{localizer}.txt"
         gt = a.poses_root / scene / "pgt_sfm_test.txt"
-        out = a.out / scene / f"{LOCALIZER}_refined.txt"
+        out = a.out / scene / f"{localizer}_refined.txt"
         refine_pose_file(a.maps / scene / "point_cloud.ply", coarse, a.dataset / scene / "test", from_pgt(gt), out,
                          config=RefineConfig.preset(a.config), limit=a.limit, gt_variant="sfm")
         before.append(evaluate(read_poses(coarse), read_poses(gt)))

@@ -194,8 +194,7 @@ class Renderer:
             tx, ty = b["tiles"]
             if self.blend_mode == "splat":
                 self._blend_img(b["xy"], b["conic_op"], b["depth"], b["color"], b["radius"], b["tile_start"],
-                                self._isect, b["isect_base"], b["background"], tx, ty, len(part), self._acc(ws, camera),
-                                b["rgb"], b["alpha"], b["dimg"])
+                                self._isect, b["isect_base"], b["background"], tx, ty, len(part), b["rgb"], b["alpha"], b["dimg"])
             else:
                 self._blend_img(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
                                 b["isect_base"], b["background"], tx, len(part), b["rgb"], b["alpha"], b["dimg"])
@@ -204,12 +203,6 @@ class Renderer:
             alphas.append(b["alpha"].to_numpy()[:n])
             depths.append(b["dimg"].to_numpy()[:n])
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
-
-    @staticmethod
-    def _acc(ws: _Workspace, camera: Camera):
-        if "acc" not in ws.bufs:
-            ws.bufs["acc"] = ti.ndarray(ti.f32, (ws.batch, camera.height, camera.width, 5))
-        return ws.bufs["acc"]
 
     def set_target(self, camera: Camera, target: np.ndarray) -> None:
         """Upload the comparison image [H, W, 3] float32 in [0, 1] for :meth:`cost_stats`."""
@@ -246,8 +239,8 @@ class Renderer:
             self._geometry(camera, part, ws, background)
             if self.blend_mode == "splat":
                 self._blend_cost(b["xy"], b["conic_op"], b["depth"], b["color"], b["radius"], b["tile_start"],
-                                 self._isect, b["isect_base"], b["background"], tx, ty, len(part),
-                                 self._acc(ws, camera), target, float(mask_alpha), b["run_stats"])
+                                 self._isect, b["isect_base"], b["background"], tx, ty, len(part), target,
+                                 float(mask_alpha), b["run_stats"])
             else:
                 self._blend_cost(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
                                  b["isect_base"], b["background"], tx, len(part), target, float(mask_alpha),

@@ -158,28 +158,29 @@ def reduce_kernel():
 
 
 def _make_splat_tile(config: RasterConfig):
-    """Per-tile splatting loop: Gaussians in depth order, each touching only the pixels of its box.
+    """Per-tile splatting loop: Gaussians in depth order, each touching only the pixels where its alpha can
+    reach ``alpha_min`` (the exact ellipse per row, clipped to its box).
 
-    Accumulates into ``acc`` [B, H, W, 5] = (T, R, G, B, D); a finished pixel stores -T. Per pixel the same
-    Gaussians are blended in the same order and with the same arithmetic as ``shade`` (a pixel outside a
-    Gaussian's box has alpha < alpha_min there, so skipping it changes nothing), so the result equals the
-    per-pixel kernel's; the work is proportional to the box areas instead of tile area x list length.
+    The tile's accumulators (T, R, G, B, D per pixel) live in a local array; a finished pixel stores -T.
+    Per pixel the same Gaussians are blended in the same order and with the same arithmetic as ``shade``
+    (a pixel outside a Gaussian's ellipse has alpha < alpha_min there, so skipping it changes nothing), so
+    the result equals the per-pixel kernel's; the work is proportional to the footprints instead of tile
+    area x list length. Returns the accumulator array [tile * tile, 5] (row-major within the tile).
     """
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
+    npx = tile * tile
 
     @ti.func
     def splat_tile(b, t, tiles_x, W, H, xy: ti.template(), conic_op: ti.template(), depth: ti.template(),
                    color: ti.template(), radius: ti.template(), tile_start: ti.template(), isect: ti.template(),
-                   isect_base: ti.template(), acc: ti.template()):
+                   isect_base: ti.template()):
         x0 = (t % tiles_x) * tile
         y0 = (t // tiles_x) * tile
         x1 = ti.min(x0 + tile, W)
         y1 = ti.min(y0 + tile, H)
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                acc[b, py, px, 0] = 1.0
-                for s in ti.static(range(1, 5)):
-                    acc[b, py, px, s] = 0.0
+        buf = ti.Matrix.zero(ti.f32, npx, 5)
+        for p in range(npx):
+            buf[p, 0] = 1.0
         npix = (x1 - x0) * (y1 - y0)
         ndone = 0
         base = ti.cast(isect_base[b], ti.i32)
@@ -197,8 +198,6 @@ def _make_splat_tile(config: RasterConfig):
             op = conic_op[b, g, 3]
             rx = radius[b, g, 0]
             ry = radius[b, g, 1]
-            # rows of the box; per row, the pixel centres inside the ellipse where alpha >= alpha_min
-            # (sigma <= ln(op / alpha_min)), widened by a small margin so rounding never drops a pixel
             ly = ti.max(y0, ti.cast(ti.ceil(my - ry - 0.5), ti.i32))
             hy = ti.min(y1, ti.cast(ti.floor(my + ry - 0.5), ti.i32) + 1)
             lim = ti.log(ti.max(op, 1e-30) / alpha_min)
@@ -222,8 +221,10 @@ def _make_splat_tile(config: RasterConfig):
                                            ti.cast(ti.ceil(mx - rx - 0.5), ti.i32)))
                     hx = ti.min(x1, ti.min(ti.cast(ti.floor(mx - 0.5 - dlo), ti.i32),
                                            ti.cast(ti.floor(mx + rx - 0.5), ti.i32)) + 1)
+                row = (py - y0) * tile - x0
                 for px in range(lx, hx):
-                    T = acc[b, py, px, 0]
+                    p = row + px
+                    T = buf[p, 0]
                     if T > 0.0:
                         dx = mx - (ti.cast(px, ti.f32) + 0.5)
                         sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -231,22 +232,23 @@ def _make_splat_tile(config: RasterConfig):
                         if sigma >= 0.0 and alpha >= alpha_min:
                             next_T = T * (1.0 - alpha)
                             if next_T <= t_eps:
-                                acc[b, py, px, 0] = -T
+                                buf[p, 0] = -T
                                 ndone += 1
                             else:
                                 vis = alpha * T
-                                acc[b, py, px, 1] += vis * cr
-                                acc[b, py, px, 2] += vis * cg
-                                acc[b, py, px, 3] += vis * cbl
-                                acc[b, py, px, 4] += vis * dz
-                                acc[b, py, px, 0] = next_T
+                                buf[p, 1] += vis * cr
+                                buf[p, 2] += vis * cg
+                                buf[p, 3] += vis * cbl
+                                buf[p, 4] += vis * dz
+                                buf[p, 0] = next_T
+        return buf
 
     return splat_tile
 
 
 @functools.cache
 def splat_image_kernel(config: RasterConfig):
-    """Tile-parallel (CPU-friendly) twin of :func:`image_kernel`; same outputs plus the ``acc`` scratch."""
+    """Tile-parallel (CPU-friendly) twin of :func:`image_kernel`; same outputs."""
     splat_tile = _make_splat_tile(config)
     tile = config.tile_size
 
@@ -264,7 +266,6 @@ def splat_image_kernel(config: RasterConfig):
         tiles_x: ti.i32,
         tiles_y: ti.i32,
         num_poses: ti.i32,
-        acc: ti.types.ndarray(dtype=ti.f32, ndim=4),
         out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
         out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
         out_depth: ti.types.ndarray(dtype=ti.f32, ndim=3),
@@ -272,16 +273,17 @@ def splat_image_kernel(config: RasterConfig):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base, acc)
+            buf = splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base)
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
             for py in range(y0, ti.min(y0 + tile, H)):
                 for px in range(x0, ti.min(x0 + tile, W)):
-                    T = ti.abs(acc[b, py, px, 0])
+                    p = (py - y0) * tile + (px - x0)
+                    T = ti.abs(buf[p, 0])
                     for c in ti.static(range(3)):
-                        out_rgb[b, py, px, c] = acc[b, py, px, 1 + c] + T * background[c]
+                        out_rgb[b, py, px, c] = buf[p, 1 + c] + T * background[c]
                     out_alpha[b, py, px] = 1.0 - T
-                    out_depth[b, py, px] = acc[b, py, px, 4]
+                    out_depth[b, py, px] = buf[p, 4]
 
     return splat_image
 
@@ -306,7 +308,6 @@ def splat_cost_kernel(config: RasterConfig):
         tiles_x: ti.i32,
         tiles_y: ti.i32,
         num_poses: ti.i32,
-        acc: ti.types.ndarray(dtype=ti.f32, ndim=4),
         target: ti.types.ndarray(dtype=ti.f32, ndim=3),
         mask_alpha: ti.f32,
         run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4),
@@ -314,17 +315,18 @@ def splat_cost_kernel(config: RasterConfig):
         H = target.shape[0]
         W = target.shape[1]
         for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base, acc)
+            buf = splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base)
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
             st = ti.Vector([0.0] * NSTAT)
             for py in range(y0, ti.min(y0 + tile, H)):
                 for px in range(x0, ti.min(x0 + tile, W)):
-                    T = ti.abs(acc[b, py, px, 0])
+                    p = (py - y0) * tile + (px - x0)
+                    T = ti.abs(buf[p, 0])
                     if 1.0 - T >= mask_alpha:
                         st[0] += 1.0
                         for c in ti.static(range(3)):
-                            r = acc[b, py, px, 1 + c] + T * background[c]
+                            r = buf[p, 1 + c] + T * background[c]
                             q = target[py, px, c]
                             e = r - q
                             st[1] += ti.abs(e)

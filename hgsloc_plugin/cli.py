@@ -39,7 +39,8 @@ def cmd_refine(args) -> int:
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
     rep = refine_pose_file(args.scene, Path(args.poses), Path(args.images), _intrinsics(args), Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
-                           figures=Path(args.figures) if args.figures else None, progress=not args.quiet)
+                           figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
+                           workers=args.workers, ray_address=args.ray_address)
     t = rep["totals"]
     print(f"refined {t['accepted']} / {t['queries']} queries ({t['failed']} failed), {t['renders']} renders, "
           f"{t['seconds']:.1f} s -> {args.out}")
@@ -132,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--limit", type=int, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
     r.add_argument("--figures", help="write comparison figures here")
+    r.add_argument("--workers", type=int, default=0, help="refine on N local Ray worker processes")
+    r.add_argument("--ray-address", help="run on an existing Ray cluster ('auto' or ray://host:port)")
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=cmd_refine)
 

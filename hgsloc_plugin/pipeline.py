@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 from .adapters.names import resolve_image
 from .adapters.posefile import read_poses, write_poses
+from .distributed import Task
 from .camera import Camera
 from .pose import Pose
 from .refine import HGSLocPlugin, RefineConfig
@@ -32,7 +32,8 @@ def refine_pose_file(scene: GaussianScene | str | Path, poses: Path, images: Pat
                      intrinsics: Callable[[str, int, int], Camera], output: Path, *,
                      config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
                      gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
-                     save_every: int = 10, settings: dict | None = None) -> dict:
+                     save_every: int = 10, settings: dict | None = None, workers: int = 0,
+                     ray_address: str | None = None) -> dict:
     """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
 
     Args:
@@ -42,6 +43,8 @@ def refine_pose_file(scene: GaussianScene | str | Path, poses: Path, images: Pat
         limit: refine only the first N queries (the rest keep their input pose).
         gt_variant: recorded in the report ("sfm", "dslam", ...).
         figures: folder for comparison figures of each refined query.
+        workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
+            (see :mod:`hgsloc_plugin.distributed`); by default everything runs in this process.
 
     Returns:
         The report dict (also written as JSON).
@@ -84,36 +87,63 @@ def refine_pose_file(scene: GaussianScene | str | Path, poses: Path, images: Pat
         }
         atomic_write_bytes(rep_path, json.dumps(report, indent=1).encode())
 
-    try:
-        for k, name in enumerate(tqdm(todo, desc="refining", unit="query", disable=not progress)):
-            coarse = pf[name]
-            t0 = time.perf_counter()
-            if coarse is None:
-                report["queries"][name] = {"accepted": False, "error": "failed prior (non-finite or zero pose)",
-                                           "renders": 0, "seconds": 0.0}
-                continue
-            try:
-                img_path = resolve_image(name, images)
-                img = load_image(img_path)
-                cam = intrinsics(name, img.shape[1], img.shape[0])
-                res = refiner.refine(img, cam, coarse, name=name)
-                if res.accepted:
-                    refined[name] = res.pose
-                entry = res.to_dict()
-                if figures is not None and res.accepted:
+    def record(name: str, coarse: Pose, res=None, error: str | None = None, img=None, cam=None) -> None:
+        if res is not None and res.error:
+            error = res.error
+        if error is not None:
+            entry = {"accepted": False, "error": error, "renders": 0,
+                     "seconds": round(res.seconds, 4) if res is not None else 0.0}
+        else:
+            entry = res.to_dict()
+            entry.pop("name", None)
+            if res.accepted:
+                refined[name] = res.pose
+                if figures is not None and img is not None:
                     from .viz import comparison_figure
 
-                    comparison_figure(refiner.scene, cam, img, coarse, res.pose,
+                    comparison_figure(refiner.scene, cam, load_image(img), coarse, res.pose,
                                       Path(figures) / (name.replace("/", "_") + ".png"),
                                       background=config.background)
-            except Exception as exc:  # one bad query never stops the run
-                logger.warning("%s: %s", name, exc)
-                entry = {"accepted": False, "error": f"{type(exc).__name__}: {exc}", "renders": 0,
-                         "seconds": round(time.perf_counter() - t0, 4)}
-            entry.pop("name", None)
-            report["queries"][name] = entry
-            if save_every and (k + 1) % save_every == 0:
-                save()
+        report["queries"][name] = entry
+
+    # prepare tasks in the driver: name, image path, intrinsics, prior (errors are recorded at once)
+    tasks = []
+    for name in todo:
+        coarse = pf[name]
+        if coarse is None:
+            record(name, coarse, error="failed prior (non-finite or zero pose)")
+            continue
+        try:
+            img_path = resolve_image(name, images)
+            from PIL import Image
+
+            with Image.open(img_path) as im:
+                w, h = im.size
+            tasks.append(Task(len(tasks), name, str(img_path), intrinsics(name, w, h), coarse))
+        except Exception as exc:  # one bad query never stops the run
+            logger.warning("%s: %s", name, exc)
+            record(name, coarse, error=f"{type(exc).__name__}: {exc}")
+
+    count = 0
+
+    def on_result(index: int, res) -> None:
+        nonlocal count
+        t = tasks[index]
+        record(t.name, t.coarse_pose, res, img=t.image, cam=t.camera)
+        count += 1
+        if save_every and count % save_every == 0:
+            save()
+
+    try:
+        if workers and workers > 0 or ray_address:
+            from .distributed import refine_distributed
+
+            refine_distributed(refiner.scene, tasks, config, workers=max(1, workers or 1), address=ray_address,
+                               progress=progress, on_result=on_result)
+        else:
+            for t in tqdm(tasks, desc="refining", unit="query", disable=not progress):
+                res = refiner.refine_many([(t.image, t.camera, t.coarse_pose, t.name)], progress=False)[0]
+                on_result(t.index, res)
     finally:
         save()
     return report

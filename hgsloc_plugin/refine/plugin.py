@@ -190,16 +190,31 @@ class HGSLocPlugin:
         result.seconds = time.perf_counter() - t0
         return result
 
-    def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining") -> list[RefineResult]:
+    def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining", workers: int = 0,
+                    ray_address: str | None = None) -> list[RefineResult]:
         """Refine many queries in order; one failure is recorded in its result, never raised.
 
         Args:
             items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
                 or dicts with those keys.
+            workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
+                (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
         """
         from tqdm import tqdm
 
         items = list(items)
+        if workers or ray_address:
+            from ..distributed import Task, refine_distributed
+
+            tasks = []
+            for k, it in enumerate(items):
+                if isinstance(it, dict):
+                    tasks.append(Task(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"]))
+                else:
+                    image, camera, coarse, *rest = it
+                    tasks.append(Task(k, rest[0] if rest else None, image, camera, coarse))
+            return refine_distributed(self.scene, tasks, self.config, workers=max(1, workers), address=ray_address,
+                                      progress=progress)
         out: list[RefineResult] = []
         for it in tqdm(items, desc=desc, disable=not progress, unit="query"):
             if isinstance(it, dict):

@@ -29,7 +29,7 @@ class RefineConfig:
         heuristic_weight / depth_cost: f = depth_cost * g + heuristic_weight * h (paper: 1 and 1;
             depth_cost 0 gives pure greedy best-first).
         score_max_side: longer image side at which the last level scores; coarse levels use
-            ``coarse_scale`` times that.
+            ``coarse_scale`` times that, but never fewer than ``coarse_min_side`` pixels.
         max_translation / max_rotation_deg: trust region around the coarse pose (None = automatic: half the
             median scene depth seen from the coarse pose).
         mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
@@ -41,9 +41,9 @@ class RefineConfig:
     metric: str = "affine"
     neighbourhood: str = "lattice"
     levels: tuple[tuple[float, float], ...] = ()
-    level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25)
+    level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
     max_expansions_per_level: int = 30
-    max_expansions: int = 150
+    max_expansions: int = 180
     patience: int = 2
     pivot: bool = True
     pattern_moves: bool = False
@@ -51,6 +51,7 @@ class RefineConfig:
     depth_cost: float = 0.0
     score_max_side: int = 160
     coarse_scale: float = 0.5
+    coarse_min_side: int = 80
     max_translation: float | None = None
     max_rotation_deg: float = 10.0
     mask_alpha: float = 0.0
@@ -96,10 +97,11 @@ class RefineConfig:
 
 PRESETS: dict[str, RefineConfig] = {
     "default": RefineConfig(),
-    "fast": RefineConfig(level_pixels=(4.0, 2.0, 1.0, 0.5), max_expansions_per_level=15, max_expansions=60,
-                         score_max_side=120),
-    "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75, 0.375, 0.1875), max_expansions_per_level=40,
-                             max_expansions=240, patience=2, score_max_side=240),
+    "fast": RefineConfig(level_pixels=(4.0, 2.0, 1.0, 0.5, 0.25), max_expansions_per_level=15,
+                         max_expansions=60, score_max_side=120),
+    "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75, 0.375, 0.1875, 0.09375),
+                             max_expansions_per_level=40, max_expansions=280, patience=3, score_max_side=240,
+                             coarse_scale=1.0),
     # Emulation of the official scheme: raw-component steps, one fixed level, f = g + h, 399 expansions,
     # L1 cost, no early stop.
     "paper": RefineConfig(metric="sad", neighbourhood="paper", max_expansions_per_level=399, max_expansions=399,

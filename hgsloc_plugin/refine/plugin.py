@@ -139,7 +139,8 @@ class HGSLocPlugin:
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
         img = check_size(load_image(image, name=name or "image"), camera, cfg.resize_query, name or "image")
         cam_final = camera.with_max_side(cfg.score_max_side)
-        cam_coarse = cam_final.scaled(cfg.coarse_scale) if cfg.coarse_scale < 1 else cam_final
+        coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
+        cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
         levels, depth = self._levels(cam_final, coarse_pose)
         max_t = cfg.max_translation if cfg.max_translation is not None else 0.5 * depth
         c0 = coarse_pose.centre()

@@ -65,17 +65,19 @@ def _scaled_to(cam: Camera, w: int, h: int) -> Camera:
     return Camera(w, h, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy)
 
 
-def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
-    """Cameras from HLoc's query list, rescaled to the image's actual size if it differs."""
-    table = parse_query_list(path, allow_distortion=allow_distortion)
-
+def _lookup(table: dict[str, Camera], source, what: str) -> IntrinsicsFn:
     def get(name, w, h):
         cam = table.get(canonical_name(name))
         if cam is None:
-            raise KeyError(f"{path}: query {name!r} is not in the list")
+            raise KeyError(f"{source}: {what} {name!r} not found")
         return _scaled_to(cam, w, h)
 
     return get
+
+
+def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
+    """Cameras from HLoc's query list, rescaled to the image's actual size if it differs."""
+    return _lookup(parse_query_list(path, allow_distortion=allow_distortion), path, "query")
 
 
 def from_colmap(model_dir, *, allow_distortion: bool = False) -> IntrinsicsFn:
@@ -83,15 +85,7 @@ def from_colmap(model_dir, *, allow_distortion: bool = False) -> IntrinsicsFn:
     import pycolmap
 
     rec = pycolmap.Reconstruction(str(model_dir))
-    table = {}
-    for img in rec.images.values():
-        table[canonical_name(img.name)] = Camera.from_pycolmap(rec.cameras[img.camera_id],
-                                                              allow_distortion=allow_distortion)
-
-    def get(name, w, h):
-        cam = table.get(canonical_name(name))
-        if cam is None:
-            raise KeyError(f"{model_dir}: image {name!r} is not in the COLMAP model")
-        return _scaled_to(cam, w, h)
-
-    return get
+    table = {canonical_name(img.name): Camera.from_pycolmap(rec.cameras[img.camera_id],
+                                                            allow_distortion=allow_distortion)
+             for img in rec.images.values()}
+    return _lookup(table, model_dir, "image")

@@ -56,13 +56,27 @@ def comparison_figure(scene: GaussianScene, camera: Camera, query: np.ndarray, c
     return save_png(np.concatenate([top, np.ones((4, top.shape[1], 3)), bot], 0), path)
 
 
-def plot_errors(before_t, after_t, before_r, after_r, path) -> Path:
-    """Scatter of per-query error before vs after (translation cm, rotation deg) and cumulative curves."""
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save_figure(plt, fig, path) -> Path:
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_errors(before_t, after_t, before_r, after_r, path) -> Path:
+    """Scatter of per-query error before vs after (translation cm, rotation deg) and cumulative curves."""
+    plt = _pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(13, 4))
     for a, b, lab in ((before_t, after_t, "translation error (cm)"), (before_r, after_r, "rotation error (deg)")):
         k = 0 if "cm" in lab else 1
@@ -77,30 +91,16 @@ def plot_errors(before_t, after_t, before_r, after_r, path) -> Path:
     ax[2].set_xlabel("translation error (cm)")
     ax[2].set_ylabel("fraction of queries")
     ax[2].legend()
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save_figure(plt, fig, path)
 
 
 def plot_costs(histories: list[list[float]], path) -> Path:
     """Best cost after each expansion, one line per query (normalised by its first value)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for h in histories:
         if h:
             ax.plot(np.asarray(h) / max(h[0], 1e-12), lw=0.8)
     ax.set_xlabel("expansion")
     ax.set_ylabel("best cost / first cost")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save_figure(plt, fig, path)

@@ -171,8 +171,7 @@ def _make_splat_tile(config: RasterConfig):
     npx = tile * tile
 
     @ti.func
-    def splat_tile(b, t, tiles_x, W, H, xy: ti.template(), conic_op: ti.template(), depth: ti.template(),
-                   color: ti.template(), radius: ti.template(), tile_start: ti.template(), isect: ti.template(),
+    def splat_tile(b, t, tiles_x, W, H, packed: ti.template(), tile_start: ti.template(), isect: ti.template(),
                    isect_base: ti.template()):
         x0 = (t % tiles_x) * tile
         y0 = (t // tiles_x) * tile
@@ -181,6 +180,9 @@ def _make_splat_tile(config: RasterConfig):
         buf = ti.Matrix.zero(ti.f32, npx, 5)
         for p in range(npx):
             buf[p, 0] = 1.0
+        row_left = ti.Vector([0] * tile)  # pixels of each tile row still blending
+        for r in range(tile):
+            row_left[r] = x1 - x0 if y0 + r < y1 else 0
         npix = (x1 - x0) * (y1 - y0)
         ndone = 0
         base = ti.cast(isect_base[b], ti.i32)
@@ -190,22 +192,29 @@ def _make_splat_tile(config: RasterConfig):
             if ndone >= npix:
                 break
             g = isect[k]
-            mx = xy[b, g, 0]
-            my = xy[b, g, 1]
-            ca = conic_op[b, g, 0]
-            cb = conic_op[b, g, 1]
-            cc = conic_op[b, g, 2]
-            op = conic_op[b, g, 3]
-            rx = radius[b, g, 0]
-            ry = radius[b, g, 1]
-            ly = ti.max(y0, ti.cast(ti.ceil(my - ry - 0.5), ti.i32))
-            hy = ti.min(y1, ti.cast(ti.floor(my + ry - 0.5), ti.i32) + 1)
+            mx = packed[b, g, 0]
+            my = packed[b, g, 1]
+            ca = packed[b, g, 2]
+            cb = packed[b, g, 3]
+            cc = packed[b, g, 4]
+            op = packed[b, g, 5]
+            rx = packed[b, g, 6]
+            ry = packed[b, g, 7]
+            # Integer bounds by truncation: never tighter than ceil/floor would give (a superset of pixels,
+            # each still tested exactly), and cheaper than calls to ceil/floor.
+            ly = ti.max(y0, ti.cast(my - ry - 0.5, ti.i32))
+            hy = ti.min(y1, ti.cast(my + ry - 0.5, ti.i32) + 1)
             lim = ti.log(ti.max(op, 1e-30) / alpha_min)
-            cr = color[b, g, 0]
-            cg = color[b, g, 1]
-            cbl = color[b, g, 2]
-            dz = depth[b, g]
+            inv_ca = 1.0 / ca
+            bx_lo = ti.cast(mx - rx - 0.5, ti.i32)
+            bx_hi = ti.cast(mx + rx - 0.5, ti.i32) + 1
+            cr = packed[b, g, 8]
+            cg = packed[b, g, 9]
+            cbl = packed[b, g, 10]
+            dz = packed[b, g, 11]
             for py in range(ly, hy):
+                if row_left[py - y0] == 0:
+                    continue
                 dy = my - (ti.cast(py, ti.f32) + 0.5)
                 # 0.5 ca dx^2 + (cb dy) dx + 0.5 cc dy^2 - lim <= 0
                 bq = cb * dy
@@ -214,13 +223,9 @@ def _make_splat_tile(config: RasterConfig):
                 hx = x0
                 if disc >= 0.0 and lim > 0.0:
                     sq = ti.sqrt(disc)
-                    dlo = (-bq - sq) / ca - 0.01
-                    dhi = (-bq + sq) / ca + 0.01
-                    # dx = mx - (px + 0.5) in [dlo, dhi]  <=>  px in [mx - 0.5 - dhi, mx - 0.5 - dlo]
-                    lx = ti.max(x0, ti.max(ti.cast(ti.ceil(mx - 0.5 - dhi), ti.i32),
-                                           ti.cast(ti.ceil(mx - rx - 0.5), ti.i32)))
-                    hx = ti.min(x1, ti.min(ti.cast(ti.floor(mx - 0.5 - dlo), ti.i32),
-                                           ti.cast(ti.floor(mx + rx - 0.5), ti.i32)) + 1)
+                    # dx = mx - (px + 0.5) in [(-bq - sq) / ca, (-bq + sq) / ca] (+- 0.01 margin)
+                    lx = ti.max(x0, ti.max(ti.cast(mx - 0.51 - (sq - bq) * inv_ca, ti.i32), bx_lo))
+                    hx = ti.min(x1, ti.min(ti.cast(mx - 0.49 + (sq + bq) * inv_ca, ti.i32) + 1, bx_hi))
                 row = (py - y0) * tile - x0
                 for px in range(lx, hx):
                     p = row + px
@@ -234,6 +239,7 @@ def _make_splat_tile(config: RasterConfig):
                             if next_T <= t_eps:
                                 buf[p, 0] = -T
                                 ndone += 1
+                                row_left[py - y0] -= 1
                             else:
                                 vis = alpha * T
                                 buf[p, 1] += vis * cr
@@ -254,11 +260,7 @@ def splat_image_kernel(config: RasterConfig):
 
     @ti.kernel
     def splat_image(
-        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
         isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -273,7 +275,7 @@ def splat_image_kernel(config: RasterConfig):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            buf = splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base)
+            buf = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
             for py in range(y0, ti.min(y0 + tile, H)):
@@ -296,11 +298,7 @@ def splat_cost_kernel(config: RasterConfig):
 
     @ti.kernel
     def splat_cost(
-        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
         isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -315,7 +313,7 @@ def splat_cost_kernel(config: RasterConfig):
         H = target.shape[0]
         W = target.shape[1]
         for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            buf = splat_tile(b, t, tiles_x, W, H, xy, conic_op, depth, color, radius, tile_start, isect, isect_base)
+            buf = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
             st = ti.Vector([0.0] * NSTAT)

@@ -24,7 +24,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         width, height, num_poses;
         outputs: xy [B, N, 2], conic_op [B, N, 4] (a, b, c, opacity), depth [B, N], color [B, N, 3],
         rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends), ntiles [B, N] (0 = culled),
-        radius [B, N, 2] (pixel half-extents of the box).
+        radius [B, N, 2] (pixel half-extents of the box), packed [B, N, 12] (x, y, a, b, c, opacity, rx, ry,
+        r, g, b, depth: the same values in one record, read by the splat blend).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
@@ -52,6 +53,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
         ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
         radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
     ):
         n = means.shape[0]
         fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
@@ -131,6 +133,18 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
                 color[b, i, c] = ti.max(rgb[c] + 0.5, 0.0)
             radius[b, i, 0] = rx
             radius[b, i, 1] = ry
+            # one record per Gaussian for the splat blend: a single cache line per lookup
+            packed[b, i, 0] = mx
+            packed[b, i, 1] = my
+            packed[b, i, 2] = c11 * inv_det
+            packed[b, i, 3] = -c01 * inv_det
+            packed[b, i, 4] = c00 * inv_det
+            packed[b, i, 5] = op
+            packed[b, i, 6] = rx
+            packed[b, i, 7] = ry
+            for c in ti.static(range(3)):
+                packed[b, i, 8 + c] = color[b, i, c]
+            packed[b, i, 11] = z
             rect[b, i, 0] = x0
             rect[b, i, 1] = y0
             rect[b, i, 2] = x1

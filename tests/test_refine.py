@@ -190,3 +190,60 @@ def test_config_presets_and_validation():
         hp.RefineConfig.preset("nope")
     with pytest.raises(Exception):
         hp.RefineConfig().metric = "sad"  # frozen
+
+
+@pytest.mark.parametrize("metric", ["sad", "psnr", "ssim", "ncc", "affine"])
+def test_every_heuristic_ranks_the_true_pose_first(room, metric):
+    from hgsloc_plugin.demo.queries import degrade
+    from hgsloc_plugin.refine.scorer import Scorer
+    from hgsloc_plugin.render import get_renderer
+
+    gt = query_poses(1, seed=6)[0]
+    img = hp.render(room, CAM, gt)
+    if metric in ("ncc", "affine", "ssim"):  # exposure-robust or structural: survive a photo-like change
+        img = degrade(img, np.random.default_rng(0), occluder=False)
+    sc = Scorer(get_renderer(room), metric, (0, 0, 0), 0.0)
+    sc.set_query(CAM, img)
+    others = [gt.perturbed_in_camera([0, 0.02, 0], [0, 0, 0]), gt.perturbed_in_camera([0, 0, 0], [0.05, 0, 0]),
+              gt.perturbed_in_camera([0.01, 0, 0.01], [0, 0.02, 0.03])]
+    c = sc([gt] + others)
+    assert np.argmin(c) == 0, c
+
+
+def test_exposure_change_breaks_sad_but_not_affine(room):
+    from hgsloc_plugin.refine.scorer import Scorer
+    from hgsloc_plugin.render import get_renderer
+
+    gt = query_poses(1, seed=6)[0]
+    img = np.clip(hp.render(room, CAM, gt) * 0.6 + 0.3, 0, 1)  # strong gain/offset change
+    near = gt.perturbed_in_camera([0, 0.004, 0], [0, 0, 0])
+    out = {}
+    for m in ("sad", "affine"):
+        sc = Scorer(get_renderer(room), m, (0, 0, 0), 0.0)
+        sc.set_query(CAM, img)
+        out[m] = sc([gt, near])
+    assert out["affine"][0] < out["affine"][1]
+    assert out["affine"][0] < 1e-3 * out["affine"][1] + 1e-6 or out["affine"][0] < 0.2 * out["sad"][0]
+
+
+def test_masked_cost_ignores_uncovered_pixels():
+    from .conftest import random_scene
+
+    scene = random_scene(n=60, sh_degree=0, seed=4)
+    cam = hp.Camera(48, 36, 40.0, 40.0, 24.0, 18.0)
+    T = hp.Pose.identity()
+    rgb, alpha, _ = hp.render_full(scene, cam, T)
+    target = rgb.copy()
+    target[alpha < 0.5] = 1.0  # change only pixels the scene does not cover
+    assert hp.render_cost(scene, cam, T, target, mask_alpha=0.5) == pytest.approx(0.0, abs=1e-6)
+    assert hp.render_cost(scene, cam, T, target) > 1.0
+
+
+def test_backend_arch_validation(monkeypatch):
+    from hgsloc_plugin import backend
+
+    with pytest.raises(ValueError, match="arch"):
+        backend.init("tpu")
+    monkeypatch.setenv("HGSLOC_ARCH", "bogus")
+    with pytest.raises(ValueError, match="HGSLOC_ARCH"):
+        backend.init()

@@ -18,3 +18,15 @@ def test_subpackages_are_mapped():
 
     assert hasattr(a, "read_poses") and hasattr(k, "RasterConfig")
     assert hgsloc_plugin.init() in ("cpu", "cuda")
+
+
+def test_pyproject_lists_every_subpackage():
+    """A regular (non-editable) install ships only the packages listed in pyproject.toml."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"hgsloc_plugin." + p.parent.relative_to(root / "hgsloc_plugin").as_posix().replace("/", ".")
+             for p in (root / "hgsloc_plugin").rglob("__init__.py") if p.parent != root / "hgsloc_plugin"}
+    assert found | {"hgsloc_plugin", "hgsloc_plugin.kernels", "hgsloc_plugin.adapters"} == listed

@@ -162,7 +162,7 @@ class HGSLocPlugin:
         for li, (s_rot, s_t) in enumerate(levels):
             if remaining <= 0:
                 break
-            cam_l = cam_final if (li == len(levels) - 1 or len(levels) == 1) else cam_coarse
+            cam_l = cam_coarse if (li < cfg.coarse_levels and li < len(levels) - 1) else cam_final
             if cam_l != best_cam:
                 scorer.set_query(cam_l, img)
                 best_cost = float(scorer([best_pose])[0])

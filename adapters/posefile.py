@@ -19,9 +19,12 @@ from hgsloc_plugin.scene import atomic_write_bytes
 from .names import canonical_name
 
 IMAGE_EXT = (".png", ".jpg", ".jpeg")
-DIALECTS = ("hloc", "ace", "marepo", "pgt", "generic")
+DIALECTS = ("hloc", "ace", "marepo", "pgt", "generic", "cambridge")
 #: tokens per record line of each dialect
-COLUMNS = {"hloc": 8, "generic": 8, "marepo": 8, "ace": 11, "pgt": 9}
+COLUMNS = {"hloc": 8, "generic": 8, "marepo": 8, "ace": 11, "pgt": 9, "cambridge": 8}
+#: Cambridge Landmarks ``dataset_*.txt``: 3 header lines, then ``name X Y Z W P Q R`` (camera centre,
+#: world-to-camera quaternion)
+CAMBRIDGE_HEADER = "Visual Landmark Dataset"
 
 
 @dataclass
@@ -78,9 +81,12 @@ def _looks_like_record(tokens: list[str]) -> bool:
             and all(_is_float(t) and math.isfinite(float(t)) for t in tokens[1:8]))
 
 
-def _make_pose(tokens: list[str]) -> Pose | None:
+def _make_pose(tokens: list[str], dialect: str = "hloc") -> Pose | None:
     vals = [float(t) for t in tokens[1:8]]
     try:
+        if dialect == "cambridge":  # X Y Z = camera centre, then W P Q R
+            q = Pose(vals[3:], [0.0, 0.0, 0.0])
+            return Pose.from_centre(q.R, vals[:3])
         return Pose(vals[:4], vals[4:])
     except ValueError:
         return None
@@ -88,6 +94,8 @@ def _make_pose(tokens: list[str]) -> Pose | None:
 
 def detect_dialect(path: Path, lines: list[str]) -> str:
     """Guess the dialect from the token counts of the lines."""
+    if lines and lines[0].strip().startswith(CAMBRIDGE_HEADER):
+        return "cambridge"
     counts = set()
     junk = False
     for ln in lines:
@@ -139,7 +147,7 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
     records, seen = [], {}
     for i, ln in enumerate(lines, 1):
         tok = ln.split()
-        if not tok or tok[0].startswith("#"):
+        if not tok or tok[0].startswith("#") or (dialect == "cambridge" and i <= 3):
             continue
         if dialect == "marepo":
             if not _looks_like_record(tok) or len(tok) != 8:
@@ -153,15 +161,16 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
         if tok[0] in seen:
             raise ValueError(f"{path}:{i}: image {tok[0]!r} appears twice (first at line {seen[tok[0]]})")
         seen[tok[0]] = i
-        records.append(Record(i, ln, tok[0], _make_pose(tok), tok))
+        records.append(Record(i, ln, tok[0], _make_pose(tok, dialect), tok))
     if not records:
         raise ValueError(f"{path}: no pose records found")
     return PoseFile(path, dialect, lines, records, final_newline)
 
 
-def format_pose_tokens(pose: Pose) -> list[str]:
-    """qw qx qy qz tx ty tz as shortest round-trip decimal strings."""
-    return [repr(float(v)) for v in pose.as_array()]
+def format_pose_tokens(pose: Pose, dialect: str = "hloc") -> list[str]:
+    """qw qx qy qz tx ty tz (Cambridge: X Y Z qw qx qy qz) as shortest round-trip decimal strings."""
+    vals = (list(pose.centre()) + list(pose.qvec)) if dialect == "cambridge" else list(pose.as_array())
+    return [repr(float(v)) for v in vals]
 
 
 def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
@@ -179,7 +188,7 @@ def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
     for i, ln in enumerate(like.lines, 1):
         r = by_line.get(i)
         if r is not None and r.name in poses and poses[r.name] is not None and poses[r.name] != r.pose:
-            out.append(" ".join([r.name] + format_pose_tokens(poses[r.name]) + r.tokens[8:]))
+            out.append(" ".join([r.name] + format_pose_tokens(poses[r.name], like.dialect) + r.tokens[8:]))
         else:
             out.append(ln)
     text = "\n".join(out) + ("\n" if like.final_newline else "")

@@ -198,16 +198,13 @@ def _make_splat_tile(config: RasterConfig):
             cb = packed[b, g, 3]
             cc = packed[b, g, 4]
             op = packed[b, g, 5]
-            rx = packed[b, g, 6]
-            ry = packed[b, g, 7]
+            lim = packed[b, g, 6]  # alpha >= alpha_min  <=>  sigma <= lim
+            ry = packed[b, g, 7]  # y half-extent of that ellipse
             # Integer bounds by truncation: never tighter than ceil/floor would give (a superset of pixels,
             # each still tested exactly), and cheaper than calls to ceil/floor.
             ly = ti.max(y0, ti.cast(my - ry - 0.5, ti.i32))
             hy = ti.min(y1, ti.cast(my + ry - 0.5, ti.i32) + 1)
-            lim = ti.log(ti.max(op, 1e-30) / alpha_min)
             inv_ca = 1.0 / ca
-            bx_lo = ti.cast(mx - rx - 0.5, ti.i32)
-            bx_hi = ti.cast(mx + rx - 0.5, ti.i32) + 1
             cr = packed[b, g, 8]
             cg = packed[b, g, 9]
             cbl = packed[b, g, 10]
@@ -224,8 +221,8 @@ def _make_splat_tile(config: RasterConfig):
                 if disc >= 0.0 and lim > 0.0:
                     sq = ti.sqrt(disc)
                     # dx = mx - (px + 0.5) in [(-bq - sq) / ca, (-bq + sq) / ca] (+- 0.01 margin)
-                    lx = ti.max(x0, ti.max(ti.cast(mx - 0.51 - (sq - bq) * inv_ca, ti.i32), bx_lo))
-                    hx = ti.min(x1, ti.min(ti.cast(mx - 0.49 + (sq + bq) * inv_ca, ti.i32) + 1, bx_hi))
+                    lx = ti.max(x0, ti.cast(mx - 0.51 - (sq - bq) * inv_ca, ti.i32))
+                    hx = ti.min(x1, ti.cast(mx - 0.49 + (sq + bq) * inv_ca, ti.i32) + 1)
                 row = (py - y0) * tile - x0
                 for px in range(lx, hx):
                     p = row + px

@@ -25,7 +25,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         outputs: xy [B, N, 2], conic_op [B, N, 4] (a, b, c, opacity), depth [B, N], color [B, N, 3],
         rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends), ntiles [B, N] (0 = culled),
         radius [B, N, 2] (pixel half-extents of the box), packed [B, N, 12] (x, y, a, b, c, opacity, rx, ry,
-        r, g, b, depth: the same values in one record, read by the splat blend).
+        r, g, b, depth; lim = ln(opacity / alpha_min) and ry = the y half-extent of the ellipse sigma <= lim:
+        one record for the splat blend).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
@@ -140,8 +141,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             packed[b, i, 3] = -c01 * inv_det
             packed[b, i, 4] = c00 * inv_det
             packed[b, i, 5] = op
-            packed[b, i, 6] = rx
-            packed[b, i, 7] = ry
+            lim = ti.log(ti.max(op, 1e-30)) + log_inv_amin  # alpha >= alpha_min  <=>  sigma <= lim
+            packed[b, i, 6] = lim
+            packed[b, i, 7] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
             for c in ti.static(range(3)):
                 packed[b, i, 8 + c] = color[b, i, c]
             packed[b, i, 11] = z

@@ -173,3 +173,27 @@ def test_intrinsics_sources(tmp_path):
     q.write_text("x.png SIMPLE_RADIAL 640 480 525 320 240 0.1\n")
     with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:1: .*distortion"):
         parse_query_list(q)
+
+
+def test_cambridge_dialect_centre_and_round_trip(tmp_path):
+    from hgsloc_plugin.pose import so3_exp
+
+    R = so3_exp([0.1, -0.2, 0.3])
+    c = np.array([10.0, -5.0, 2.0])
+    T = Pose.from_centre(R, c)
+    q = " ".join(repr(float(v)) for v in T.qvec)
+    p = tmp_path / "dataset_test.txt"
+    text = (f"Visual Landmark Dataset V1\nImageFile, Camera Position [X Y Z W P Q R]\n\n"
+            f"seq2/frame00001.png 10.0 -5.0 2.0 {q}\nseq2/frame00002.png 1 2 3 1 0 0 0\n")
+    p.write_text(text)
+    pf = read_poses(p)
+    assert pf.dialect == "cambridge" and list(pf) == ["seq2/frame00001.png", "seq2/frame00002.png"]
+    np.testing.assert_allclose(pf["seq2/frame00001.png"].centre(), c, atol=1e-9)
+    np.testing.assert_allclose(pf["seq2/frame00001.png"].R, R, atol=1e-12)
+    assert write_poses(tmp_path / "o.txt", dict(pf), like=pf).read_text() == text
+    new = Pose.from_centre(R, c + 1)
+    out = write_poses(tmp_path / "o2.txt", {"seq2/frame00001.png": new}, like=pf)
+    back = read_poses(out)
+    np.testing.assert_allclose(back["seq2/frame00001.png"].centre(), c + 1, atol=1e-9)
+    assert out.read_text().splitlines()[:3] == text.splitlines()[:3]
+    assert canonical_name("seq2_frame00001.png") in {canonical_name(n) for n in pf}

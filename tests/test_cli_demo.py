@@ -171,3 +171,16 @@ def test_noise_protocols_have_exact_magnitudes():
     with pytest.raises(ValueError):
         parse_protocol("banana")
     assert not math.isnan(parse_protocol("q3_t3")[1])
+
+
+def test_cli_refine_writes_figures(tiny_case, tmp_path):
+    from PIL import Image
+
+    d = tiny_case
+    figs = tmp_path / "figs"
+    assert main(["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images",
+                 str(d / "images"), "--focal", "90", "--out", str(tmp_path / "r.txt"), "--config", "fast",
+                 "--limit", "1", "--quiet", "--figures", str(figs)]) == 0
+    pngs = list(figs.glob("*.png"))
+    assert len(pngs) == 1 and pngs[0].name.startswith("seq-01")
+    assert Image.open(pngs[0]).size == (2 * 128 + 4, 2 * 96 + 4)

@@ -19,6 +19,7 @@ from pathlib import Path
 from .posefile import PoseFile, read_poses as _read, write_poses
 
 logger = logging.getLogger("hgsloc_plugin")
+__all__ = ["main", "read_poses", "write_poses"]
 
 
 def read_poses(path) -> PoseFile:

@@ -93,7 +93,8 @@ def main() -> None:
                     f"{np.median([r.renders for r in res]):.0f} | {np.median([r.seconds for r in res]):.2f} |")
                 print(lines[-1], flush=True)
     text = ("# Accuracy benchmark\n\n"
-            f"Queries: {a.queries} on the room, {a.donut_queries} on the donut (paper emulation: {a.paper_queries}), photo-degraded renderings at "
+            f"Queries: {a.queries} on the room, {a.donut_queries} on the donut (paper emulation: "
+            f"{a.paper_queries}), photo-degraded renderings at "
             f"320x240, scoring at 160 px; backend {hp.current_arch()}; medians over queries; translation in "
             "scene units x 100 (cm for the room), rotation in degrees. "
             f"Total time {time.time() - t_start:.0f} s.\n\n" + "\n".join(lines) + "\n")

@@ -126,9 +126,8 @@ class Renderer:
         nd = ti.ndarray
         bufs = dict(
             viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
-            xy=nd(ti.f32, (B, n, 2)), conic_op=nd(ti.f32, (B, n, 4)), depth=nd(ti.f32, (B, n)),
-            color=nd(ti.f32, (B, n, 3)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
-            radius=nd(ti.f32, (B, n, 2)), packed=nd(ti.f32, (B, n, 12)),
+            depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
+            packed=nd(ti.f32, (B, n, 12)),
             totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
             keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)), ids_a=nd(ti.i32, (B, n)),
             ids_b=nd(ti.i32, (B, n)), hist=nd(ti.i32, (B, 256)), cursor=nd(ti.i32, (B, tx * ty)),
@@ -157,8 +156,7 @@ class Renderer:
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
         self._project(self._means, self._cov3d, self._opac, self._sh, b["viewmats"], b["campos"], b["intrin"],
-                      camera.width, camera.height, B, b["xy"], b["conic_op"], b["depth"], b["color"], b["rect"],
-                      b["ntiles"], b["radius"], b["packed"])
+                      camera.width, camera.height, B, b["depth"], b["rect"], b["ntiles"], b["packed"])
         self._count(b["ntiles"], B, b["totals"])
         totals = b["totals"].to_numpy()[:B]
         base = np.zeros(ws.batch, np.int64)
@@ -196,8 +194,8 @@ class Renderer:
                 self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx, ty,
                                 len(part), b["rgb"], b["alpha"], b["dimg"])
             else:
-                self._blend_img(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
-                                b["isect_base"], b["background"], tx, len(part), b["rgb"], b["alpha"], b["dimg"])
+                self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
+                                len(part), b["rgb"], b["alpha"], b["dimg"])
             n = len(part)
             rgbs.append(b["rgb"].to_numpy()[:n])
             alphas.append(b["alpha"].to_numpy()[:n])
@@ -241,9 +239,8 @@ class Renderer:
                 self._blend_cost(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
                                  ty, len(part), target, float(mask_alpha), b["run_stats"])
             else:
-                self._blend_cost(b["xy"], b["conic_op"], b["depth"], b["color"], b["tile_start"], self._isect,
-                                 b["isect_base"], b["background"], tx, len(part), target, float(mask_alpha),
-                                 b["run_stats"])
+                self._blend_cost(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
+                                 len(part), target, float(mask_alpha), b["run_stats"])
             self._reduce(b["run_stats"], len(part), b["stats"])
             out.append(b["stats"].to_numpy()[:len(part)])
         return np.concatenate(out)

@@ -25,8 +25,8 @@ def _make_shade(config: RasterConfig):
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
 
     @ti.func
-    def shade(b, px, py, tiles_x, xy: ti.template(), conic_op: ti.template(), depth: ti.template(),
-              color: ti.template(), tile_start: ti.template(), isect: ti.template(), isect_base: ti.template()):
+    def shade(b, px, py, tiles_x, packed: ti.template(), tile_start: ti.template(), isect: ti.template(),
+              isect_base: ti.template()):
         t_id = (py // tile) * tiles_x + px // tile
         base = ti.cast(isect_base[b], ti.i32)
         start = base + tile_start[b, t_id]
@@ -38,18 +38,18 @@ def _make_shade(config: RasterConfig):
         D = 0.0
         for k in range(start, end):
             g = isect[k]
-            dx = xy[b, g, 0] - fx
-            dy = xy[b, g, 1] - fy
-            sigma = 0.5 * (conic_op[b, g, 0] * dx * dx + conic_op[b, g, 2] * dy * dy) + conic_op[b, g, 1] * dx * dy
-            alpha = ti.min(alpha_max, conic_op[b, g, 3] * ti.exp(-sigma))
+            dx = packed[b, g, 0] - fx
+            dy = packed[b, g, 1] - fy
+            sigma = 0.5 * (packed[b, g, 2] * dx * dx + packed[b, g, 4] * dy * dy) + packed[b, g, 3] * dx * dy
+            alpha = ti.min(alpha_max, packed[b, g, 5] * ti.exp(-sigma))
             if sigma < 0.0 or alpha < alpha_min:
                 continue
             next_T = T * (1.0 - alpha)
             if next_T <= t_eps:
                 break
             vis = alpha * T
-            C += vis * ti.Vector([color[b, g, 0], color[b, g, 1], color[b, g, 2]])
-            D += vis * depth[b, g]
+            C += vis * ti.Vector([packed[b, g, 8], packed[b, g, 9], packed[b, g, 10]])
+            D += vis * packed[b, g, 11]
             T = next_T
         return C, T, D
 
@@ -63,10 +63,7 @@ def image_kernel(config: RasterConfig):
 
     @ti.kernel
     def blend_image(
-        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
         isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -80,7 +77,7 @@ def image_kernel(config: RasterConfig):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         for b, py, px in ti.ndrange(num_poses, H, W):
-            C, T, D = shade(b, px, py, tiles_x, xy, conic_op, depth, color, tile_start, isect, isect_base)
+            C, T, D = shade(b, px, py, tiles_x, packed, tile_start, isect, isect_base)
             for c in ti.static(range(3)):
                 out_rgb[b, py, px, c] = C[c] + T * background[c]
             out_alpha[b, py, px] = 1.0 - T
@@ -97,10 +94,7 @@ def cost_kernel(config: RasterConfig):
 
     @ti.kernel
     def blend_cost(
-        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
         isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
@@ -118,7 +112,7 @@ def cost_kernel(config: RasterConfig):
             for dx in range(tile):
                 px = run * tile + dx
                 if px < W:
-                    C, T, D = shade(b, px, py, tiles_x, xy, conic_op, depth, color, tile_start, isect, isect_base)
+                    C, T, D = shade(b, px, py, tiles_x, packed, tile_start, isect, isect_base)
                     if 1.0 - T >= mask_alpha:
                         acc[0] += 1.0
                         for c in ti.static(range(3)):

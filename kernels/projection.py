@@ -22,11 +22,10 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3],
         viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx, cy),
         width, height, num_poses;
-        outputs: xy [B, N, 2], conic_op [B, N, 4] (a, b, c, opacity), depth [B, N], color [B, N, 3],
-        rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends), ntiles [B, N] (0 = culled),
-        radius [B, N, 2] (pixel half-extents of the box), packed [B, N, 12] (x, y, a, b, c, opacity, rx, ry,
-        r, g, b, depth; lim = ln(opacity / alpha_min) and ry = the y half-extent of the ellipse sigma <= lim:
-        one record for the splat blend).
+        outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
+        ntiles [B, N] (0 = culled), packed [B, N, 12]: one record per Gaussian for the blend kernels
+        (x, y, conic a, b, c, opacity, lim = ln(opacity / alpha_min), y half-extent of the ellipse
+        sigma <= lim, r, g, b, depth).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
@@ -47,13 +46,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         width: ti.i32,
         height: ti.i32,
         num_poses: ti.i32,
-        xy: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        conic_op: ti.types.ndarray(dtype=ti.f32, ndim=3),
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        color: ti.types.ndarray(dtype=ti.f32, ndim=3),
         rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
         ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        radius: ti.types.ndarray(dtype=ti.f32, ndim=3),
         packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
     ):
         n = means.shape[0]
@@ -120,21 +115,11 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             nt = (x1 - x0) * (y1 - y0)
             if nt <= 0:
                 continue
-            xy[b, i, 0] = mx
-            xy[b, i, 1] = my
-            conic_op[b, i, 0] = c11 * inv_det
-            conic_op[b, i, 1] = -c01 * inv_det
-            conic_op[b, i, 2] = c00 * inv_det
-            conic_op[b, i, 3] = op
             depth[b, i] = z
             d = p_w - ti.Vector([campos[b, 0], campos[b, 1], campos[b, 2]])
             d = d / ti.max(d.norm(), 1e-12)
             rgb = eval_sh(sh, i, d)
-            for c in ti.static(range(3)):
-                color[b, i, c] = ti.max(rgb[c] + 0.5, 0.0)
-            radius[b, i, 0] = rx
-            radius[b, i, 1] = ry
-            # one record per Gaussian for the splat blend: a single cache line per lookup
+            # one record per Gaussian, read by both blend kernels
             packed[b, i, 0] = mx
             packed[b, i, 1] = my
             packed[b, i, 2] = c11 * inv_det
@@ -145,7 +130,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             packed[b, i, 6] = lim
             packed[b, i, 7] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
             for c in ti.static(range(3)):
-                packed[b, i, 8 + c] = color[b, i, c]
+                packed[b, i, 8 + c] = ti.max(rgb[c] + 0.5, 0.0)
             packed[b, i, 11] = z
             rect[b, i, 0] = x0
             rect[b, i, 1] = y0

@@ -86,6 +86,8 @@ class Renderer:
         self._opac = self._upload(scene.opacities, ti.f32)
         self._sh = self._upload(scene.sh, ti.f32)
         self._ws: dict[tuple, _Workspace] = {}
+        self._targets: dict[tuple[int, int], ti.Ndarray] = {}  # comparison image per camera size
+        self._target_key: tuple[int, int] | None = None
         self._isect = None
         self._isect_cap = 0
         self._project = projection_kernel(self.config, self.sh_degree)
@@ -208,10 +210,10 @@ class Renderer:
         if target.shape != (camera.height, camera.width, 3):
             raise ValueError(f"target image must be [{camera.height}, {camera.width}, 3], got {target.shape}")
         key = (camera.width, camera.height)
-        nd = getattr(self, "_targets", {}).get(key)
+        nd = self._targets.get(key)
         if nd is None:
             nd = ti.ndarray(ti.f32, target.shape)
-            self._targets = {key: nd}
+            self._targets[key] = nd
         nd.from_numpy(target)
         self._target_key = key
 
@@ -222,7 +224,7 @@ class Renderer:
         See ``kernels/blend.py`` for the layout (n_valid, SAD, SSD, per-channel sums).
         """
         key = (camera.width, camera.height)
-        if getattr(self, "_target_key", None) != key:
+        if self._target_key != key:
             raise RuntimeError("call set_target() with an image of this camera's size first")
         target = self._targets[key]
         out = []

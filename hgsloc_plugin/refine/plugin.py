@@ -13,7 +13,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..kernels import RasterConfig
-from ..pose import Pose
+from ..pose import Pose, rotation_angle_deg
 from ..render import get_renderer
 from ..scene import GaussianScene
 from .config import RefineConfig
@@ -149,8 +149,6 @@ class HGSLocPlugin:
         def allowed(T: Pose) -> bool:
             if np.linalg.norm(T.centre() - c0) > max_t:
                 return False
-            from ..pose import rotation_angle_deg
-
             return rotation_angle_deg(R0, T.R) <= cfg.max_rotation_deg
 
         scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)

@@ -187,11 +187,6 @@ class GaussianScene:
         lo, hi = self.bounds()
         return float(np.linalg.norm(hi - lo))
 
-    def subset(self, idx) -> GaussianScene:
-        """A scene with the Gaussians ``idx`` only."""
-        raw = {k: np.ascontiguousarray(v[idx]) for k, v in self.raw.items()}
-        return GaussianScene._from_raw(raw, self.source)
-
 
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
     """Write ``payload`` to ``path`` through a temporary file in the same folder and a rename."""

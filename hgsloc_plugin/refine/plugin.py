@@ -75,6 +75,14 @@ class RefineResult:
         }
 
 
+def _unpack(item) -> tuple:
+    """(image, camera, coarse_pose, name) from a refine_many item: a 3- or 4-tuple or a dict with those keys."""
+    if isinstance(item, dict):
+        return item["image"], item["camera"], item["coarse_pose"], item.get("name")
+    image, camera, coarse, *rest = item
+    return image, camera, coarse, (rest[0] if rest else None)
+
+
 def median_depth(scene: GaussianScene, camera: Camera, T_cam_world: Pose) -> float:
     """Median camera z of the Gaussian centres that project into the image (scene extent if none do)."""
     p = scene.means.astype(np.float64) @ T_cam_world.R.T + T_cam_world.tvec
@@ -207,20 +215,13 @@ class HGSLocPlugin:
 
             tasks = []
             for k, it in enumerate(items):
-                if isinstance(it, dict):
-                    tasks.append(Task(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"]))
-                else:
-                    image, camera, coarse, *rest = it
-                    tasks.append(Task(k, rest[0] if rest else None, image, camera, coarse))
+                image, camera, coarse, name = _unpack(it)
+                tasks.append(Task(k, name, image, camera, coarse))
             return refine_distributed(self.scene, tasks, self.config, workers=max(1, workers), address=ray_address,
                                       progress=progress)
         out: list[RefineResult] = []
         for it in tqdm(items, desc=desc, disable=not progress, unit="query"):
-            if isinstance(it, dict):
-                image, camera, coarse, name = it["image"], it["camera"], it["coarse_pose"], it.get("name")
-            else:
-                image, camera, coarse, *rest = it
-                name = rest[0] if rest else None
+            image, camera, coarse, name = _unpack(it)
             try:
                 out.append(self.refine(image, camera, coarse, name=name))
             except Exception as exc:  # recorded per query, the batch goes on

@@ -8,6 +8,7 @@ from pathlib import Path
 from hgsloc_plugin.camera import Camera
 
 from .names import canonical_name
+from .posefile import PoseFile, read_poses
 
 #: (name, image width, image height) -> Camera
 IntrinsicsFn = Callable[[str, int, int], Camera]
@@ -20,11 +21,14 @@ def from_focal(focal: float) -> IntrinsicsFn:
     return lambda name, w, h: Camera.from_focal(w, h, focal)
 
 
+def pgt_focals(pf: PoseFile) -> dict[str, float]:
+    """name -> focal length in pixels: the 9th column of a pseudo-ground-truth file."""
+    return {r.name: float(r.tokens[8]) for r in pf.records}
+
+
 def from_pgt(path) -> IntrinsicsFn:
     """Per-image focal from a pseudo-ground-truth file's 9th column, centred principal point."""
-    from .pgt import focals, read_poses
-
-    table = {canonical_name(k): v for k, v in focals(read_poses(path)).items()}
+    table = {canonical_name(k): v for k, v in pgt_focals(read_poses(path, "pgt")).items()}
 
     def get(name, w, h):
         f = table.get(canonical_name(name))

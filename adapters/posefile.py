@@ -8,16 +8,16 @@ Failed priors (non-finite values or a zero quaternion, as ACE writes for an exac
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hgsloc_plugin.fileio import atomic_write_bytes
 from hgsloc_plugin.pose import Pose
-from hgsloc_plugin.scene import atomic_write_bytes
 
-from .names import canonical_name
-
+logger = logging.getLogger("hgsloc_plugin")
 IMAGE_EXT = (".png", ".jpg", ".jpeg")
 DIALECTS = ("hloc", "ace", "marepo", "pgt", "generic", "cambridge")
 #: tokens per record line of each dialect
@@ -63,10 +63,6 @@ class PoseFile(Mapping):
     def record(self, name: str) -> Record:
         return self._by_name[name]
 
-    def by_canonical(self) -> dict[str, str]:
-        """canonical name -> name as written in this file."""
-        return {canonical_name(r.name): r.name for r in self.records}
-
 
 def _is_float(tok: str) -> bool:
     try:
@@ -92,22 +88,35 @@ def _make_pose(tokens: list[str], dialect: str = "hloc") -> Pose | None:
         return None
 
 
+def _has_tensor_tail(tokens: list[str]) -> bool:
+    """A Marepo record followed by its batch's error tensors: 8 pose tokens, then non-numeric text."""
+    return len(tokens) > 8 and _looks_like_record(tokens) and not _is_float(tokens[8])
+
+
 def detect_dialect(path: Path, lines: list[str]) -> str:
-    """Guess the dialect from the token counts of the lines."""
+    """Guess the dialect from the token counts of the lines.
+
+    Raw Marepo output (records followed by the reprs of the batch's error tensors, wrapped over several lines;
+    CONVENTIONS §2) is recognised by its tensor tails and wrapped lines; every record of such a file has 8
+    pose tokens.
+    """
     if lines and lines[0].strip().startswith(CAMBRIDGE_HEADER):
         return "cambridge"
     counts = set()
     junk = False
     for ln in lines:
         tok = ln.split()
-        if not tok:
+        if not tok or tok[0].startswith("#"):
             continue
-        if _looks_like_record(tok) or (len(tok) in (8, 9, 11) and tok[0].lower().endswith(IMAGE_EXT)):
+        if _has_tensor_tail(tok):
+            counts.add(8)
+            junk = True
+        elif _looks_like_record(tok) or (len(tok) in (8, 9, 11) and tok[0].lower().endswith(IMAGE_EXT)):
             counts.add(len(tok))
         else:
             junk = True
     if junk:
-        if counts <= {8}:
+        if counts == {8}:
             return "marepo"
         raise ValueError(f"{path}: cannot detect the pose-file dialect (lines that are not pose records, "
                          f"record widths {sorted(counts)})")
@@ -150,8 +159,8 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
         if not tok or tok[0].startswith("#") or (dialect == "cambridge" and i <= 3):
             continue
         if dialect == "marepo":
-            if not _looks_like_record(tok) or len(tok) != 8:
-                continue  # spilled error tensors: not a record
+            if not _looks_like_record(tok):
+                continue  # wrapped error tensors: not a record (CONVENTIONS §2, robust parse)
         else:
             if len(tok) != width:
                 raise ValueError(f"{path}:{i}: expected {width} columns ({dialect}), got {len(tok)}")
@@ -161,7 +170,11 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
         if tok[0] in seen:
             raise ValueError(f"{path}:{i}: image {tok[0]!r} appears twice (first at line {seen[tok[0]]})")
         seen[tok[0]] = i
-        records.append(Record(i, ln, tok[0], _make_pose(tok, dialect), tok))
+        pose = _make_pose(tok, dialect)
+        if pose is None:
+            logger.warning("%s:%d: unusable pose for %s (non-finite value or zero quaternion): kept as a failed "
+                           "estimate", path, i, tok[0])
+        records.append(Record(i, ln, tok[0], pose, tok))
     if not records:
         raise ValueError(f"{path}: no pose records found")
     return PoseFile(path, dialect, lines, records, final_newline)

@@ -57,11 +57,11 @@ def main() -> None:
     for w, h in ((160, 120), (640, 480)):
         cam = hp.Camera.from_fov(w, h, 50.0)
         target_img = hp.render(scene, cam, T)
-        ref = timed(lambda: render_reference(scene, cam, T), max(1, a.repeats // 2))
+        ref = timed(lambda cam=cam: render_reference(scene, cam, T), max(1, a.repeats // 2))
         for B in (1, 14):
             ps = poses[:B]
-            t_img = timed(lambda: hp.render(scene, cam, ps), a.repeats) / B
-            t_cost = timed(lambda: hp.render_cost(scene, cam, ps, target_img), a.repeats) / B
+            t_img = timed(lambda cam=cam, ps=ps: hp.render(scene, cam, ps), a.repeats) / B
+            t_cost = timed(lambda cam=cam, ps=ps, t=target_img: hp.render_cost(scene, cam, ps, t), a.repeats) / B
             print(f"| {w}x{h} | {B} | {t_img * 1e3:.2f} | {t_cost * 1e3:.2f} | {ref * 1e3:.1f} | "
                   f"{ref / t_cost:.0f}x |")
 

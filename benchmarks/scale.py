@@ -20,7 +20,6 @@ sys.path.insert(0, str(ROOT))
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.demo.queries import make_queries, query_poses  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.distributed import Task, refine_distributed  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 
 
@@ -37,12 +36,12 @@ def main() -> None:
     gts = query_poses(a.queries, seed=3)
     imgs = make_queries(scene, cam, gts)
     rng = np.random.default_rng(0)
-    tasks = [Task(k, f"q{k}", imgs[k], cam, se3_noise(g, 1.0, 0.03, rng)) for k, g in enumerate(gts)]
+    items = [(imgs[k], cam, se3_noise(g, 1.0, 0.03, rng), f"q{k}") for k, g in enumerate(gts)]
     cfg = hp.RefineConfig.preset(a.config)
     refiner = hp.HGSLocPlugin(scene, cfg)
-    refiner.refine(imgs[0], cam, tasks[0].coarse_pose)  # warm-up
+    refiner.refine(imgs[0], cam, items[0][2])  # warm-up
     t0 = time.perf_counter()
-    ref = refiner.refine_many([(t.image, t.camera, t.coarse_pose, t.name) for t in tasks], progress=False)
+    ref = refiner.refine_many(items, progress=False)
     t_in = time.perf_counter() - t0
     print(f"{a.queries} queries, preset {a.config}, {scene.num_gaussians} Gaussians, {2} CPU cores")
     print("| mode | queries/s | s/query | overhead/query vs in-process |")
@@ -51,7 +50,7 @@ def main() -> None:
     for workers in (1, 2):
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
         t0 = time.perf_counter()
-        got = refine_distributed(scene, tasks, cfg, workers=workers, progress=False)
+        got = refiner.refine_many(items, progress=False, workers=workers)
         dt = time.perf_counter() - t0
         ray.shutdown()
         same = all(x.pose == y.pose for x, y in zip(ref, got))

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hgsloc_plugin.adapters import hloc as hgsloc_step
+from hgsloc_plugin import hloc_step as hgsloc_step
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
 

@@ -1,15 +1,22 @@
 """hgsloc_plugin: heuristic 3DGS camera-pose refinement (HGSLoc-style), fast and drop-in.
 
 Conventions: poses are world-to-camera (COLMAP ``cam_from_world``), quaternions w, x, y, z, OpenCV axes.
+Importing the package loads Taichi but does not start it (``init`` or the first render does); Taichi's banner
+is kept off stdout so that machine-readable output stays pure.
 """
 
-from .backend import current_arch, init
-from .camera import Camera
-from .kernels import RasterConfig
-from .pose import Pose
-from .refine import HGSLocPlugin, RefineConfig, RefineResult
-from .render import Renderer, render, render_cost, render_full
-from .scene import GaussianScene
+import os
+
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+
+from .backend import current_arch, init  # noqa: E402
+from .camera import Camera  # noqa: E402
+from .kernels import RasterConfig  # noqa: E402
+from .plugin import HGSLocPlugin  # noqa: E402
+from .pose import Pose  # noqa: E402
+from .refine import RefineConfig, RefineResult  # noqa: E402
+from .render import Renderer, render, render_cost, render_full  # noqa: E402
+from .scene import GaussianScene  # noqa: E402
 
 __all__ = [
     "Camera",

@@ -8,8 +8,10 @@ so a second process does not recompile them.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import sys
 from pathlib import Path
 
 logger = logging.getLogger("hgsloc_plugin")
@@ -44,6 +46,12 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
                 f"Taichi already started on {_ARCH!r}; call hgsloc_plugin.init({requested!r}) before any rendering"
             )
         return _ARCH
+    with contextlib.redirect_stdout(sys.stderr):  # Taichi prints its banner and arch line on stdout
+        _ARCH = _start(requested, debug, cpu_threads)
+    return _ARCH
+
+
+def _start(requested: str, debug: bool, cpu_threads: int | None) -> str:
     import taichi as ti
 
     kwargs = dict(
@@ -62,9 +70,8 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
         try:
             ti.init(arch=ti.cuda, **kwargs)
             if ti.lang.impl.current_cfg().arch == ti.cuda:
-                _ARCH = "cuda"
                 logger.info("Taichi started on CUDA")
-                return _ARCH
+                return "cuda"
         except Exception as exc:  # pragma: no cover - depends on the machine
             if requested == "cuda":
                 raise RuntimeError(f"CUDA backend requested but unavailable: {exc}") from exc
@@ -72,9 +79,8 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
             raise RuntimeError("CUDA backend requested but Taichi fell back to another arch")
         ti.reset()
     ti.init(arch=ti.cpu, **kwargs)
-    _ARCH = "cpu"
     logger.info("Taichi started on CPU")
-    return _ARCH
+    return "cpu"
 
 
 def _cuda_driver_present() -> bool:

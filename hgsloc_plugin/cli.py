@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
-
 
 
 def _intrinsics(args):
@@ -50,6 +48,7 @@ def cmd_refine(args) -> int:
 def cmd_evaluate(args) -> int:
     from .adapters import read_poses
     from .evaluate import evaluate, mean_over_scenes
+    from .fileio import dumps_json
 
     if len(args.poses) != len(args.gt):
         raise ValueError("give one --gt per --poses (one pair per scene)")
@@ -61,7 +60,7 @@ def cmd_evaluate(args) -> int:
         results.append(r)
     if args.json:
         out = results[0] if len(results) == 1 else {"scenes": results, "mean": mean_over_scenes(results)}
-        print(json.dumps(out, indent=1))
+        print(dumps_json(out))
         return 0
     for r in results:
         rc = r["recall"]
@@ -162,13 +161,17 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+RENDERING_COMMANDS = (cmd_refine, cmd_render, cmd_demo)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
-        from .backend import init
+        if args.func in RENDERING_COMMANDS:  # only commands that render start Taichi
+            from .backend import init
 
-        init(args.arch)
+            init(args.arch)
         return args.func(args)
     except KeyboardInterrupt:
         print("hgsloc: interrupted; rerun the same command to resume", file=sys.stderr)

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kernels.layout import Stat
+
 FUSED_METRICS = ("sad", "ssd", "psnr", "ncc", "affine")
 
 
 def cost_from_stats(stats: np.ndarray, metric: str, num_pixels: int) -> np.ndarray:
-    """Per-pose cost from statistics [B, 18] (float64).
+    """Per-pose cost from statistics [B, Stat.SIZE] (float64).
 
     Args:
-        stats: n_valid, SAD, SSD, then per channel (sum r, sum q, sum r^2, sum q^2, sum r*q).
+        stats: the ``kernels.layout.Stat`` record per pose (n_valid, SAD, SSD, per-channel sums).
         metric: "sad" raw sum |r - q| over valid pixels and RGB (the paper's L1);
             "ssd" sum of squares; "psnr" 100 - PSNR of the valid pixels;
             "ncc" 1 - mean over channels of the zero-mean normalised cross-correlation (gain/offset invariant);
@@ -23,16 +25,16 @@ def cost_from_stats(stats: np.ndarray, metric: str, num_pixels: int) -> np.ndarr
         float64 [B]; lower is better.
     """
     stats = np.asarray(stats, dtype=np.float64)
-    n = np.maximum(stats[:, 0], 1.0)
+    n = np.maximum(stats[:, Stat.N], 1.0)
     if metric == "sad":
-        return stats[:, 1].copy()
+        return stats[:, Stat.SAD].copy()
     if metric == "ssd":
-        return stats[:, 2].copy()
+        return stats[:, Stat.SSD].copy()
     if metric == "psnr":
-        mse = np.maximum(stats[:, 2] / (3.0 * n), 1e-12)
+        mse = np.maximum(stats[:, Stat.SSD] / (3.0 * n), 1e-12)
         return 100.0 - 10.0 * np.log10(1.0 / mse)
-    ch = stats[:, 3:18].reshape(-1, 3, 5)
-    sr, sq, srr, sqq, srq = (ch[..., k] for k in range(5))
+    ch = stats[:, Stat.CHANNELS:Stat.SIZE].reshape(-1, 3, Stat.PER_CHANNEL)
+    sr, sq, srr, sqq, srq = (ch[..., k] for k in (Stat.SR, Stat.SQ, Stat.SRR, Stat.SQQ, Stat.SRQ))
     nn = n[:, None]
     var_r = np.maximum(srr - sr * sr / nn, 0.0)
     var_q = np.maximum(sqq - sq * sq / nn, 0.0)

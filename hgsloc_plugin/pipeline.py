@@ -13,13 +13,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .adapters.names import resolve_image
-from .adapters.posefile import read_poses, write_poses
-from .distributed import Task
+from .adapters.posefile import PoseFile, read_poses, write_poses
+from .batch import Query, run_batch
 from .camera import Camera
+from .fileio import write_json
+from .image import load_image
+from .plugin import HGSLocPlugin
 from .pose import Pose
-from .refine import HGSLocPlugin, RefineConfig
-from .refine.image import load_image
-from .scene import GaussianScene, atomic_write_bytes
+from .refine import RefineConfig, RefineResult
+from .scene import GaussianScene
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -28,66 +30,13 @@ def report_path(output: Path) -> Path:
     return Path(str(output) + ".json")
 
 
-def refine_pose_file(scene: GaussianScene | str | Path, poses: Path, images: Path,
-                     intrinsics: Callable[[str, int, int], Camera], output: Path, *,
-                     config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
-                     gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
-                     save_every: int = 10, settings: dict | None = None, workers: int = 0,
-                     ray_address: str | None = None) -> dict:
-    """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
+class _Run:
+    """The state of one pose-file run: refined poses, per-query report entries, and how to save them."""
 
-    Args:
-        scene: the 3DGS map (object or .ply path), in the frame of the poses.
-        poses: the localizer's pose file. images: folder holding the query images (any name style).
-        intrinsics: (name, width, height) -> Camera. output: refined pose file (must differ from ``poses``).
-        limit: refine only the first N queries (the rest keep their input pose).
-        gt_variant: recorded in the report ("sfm", "dslam", ...).
-        figures: folder for comparison figures of each refined query.
-        workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
-            (see :mod:`hgsloc_plugin.distributed`); by default everything runs in this process.
+    def __init__(self, pf: PoseFile, output: Path, report: dict, refined: dict[str, Pose]):
+        self.pf, self.output, self.report, self.refined = pf, output, report, refined
 
-    Returns:
-        The report dict (also written as JSON).
-    """
-    from tqdm import tqdm
-
-    poses, images, output = Path(poses), Path(images), Path(output)
-    if output.exists() and output.resolve() == poses.resolve():
-        raise ValueError(f"{output}: refusing to overwrite the input pose file")
-    pf = read_poses(poses, dialect)
-    refiner = scene if isinstance(scene, HGSLocPlugin) else HGSLocPlugin(scene, config)
-    config = refiner.config
-    rep_path = report_path(output)
-    done: dict[str, dict] = {}
-    refined: dict[str, Pose] = {}
-    if output.exists() and rep_path.exists():  # resume
-        old = json.loads(rep_path.read_text())
-        prev = read_poses(output, pf.dialect)
-        for name, q in old.get("queries", {}).items():
-            if name in pf and name in prev:
-                done[name] = q
-                if prev[name] is not None:
-                    refined[name] = prev[name]
-        logger.info("resuming: %d queries already done", len(done))
-    names = list(pf)[: limit if limit is not None else None]
-    todo = [n for n in names if n not in done]
-    report = {
-        "input": str(poses), "output": str(output), "dialect": pf.dialect, "scene": str(getattr(
-            refiner.scene, "source", None)), "gt_variant": gt_variant, "config": config.to_dict(),
-        "settings": settings or {}, "queries": done,
-    }
-
-    def save():
-        write_poses(output, refined, like=pf)
-        q = report["queries"].values()
-        report["totals"] = {
-            "queries": len(report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
-            "failed": sum(1 for v in q if v.get("error")), "renders": sum(v.get("renders", 0) for v in q),
-            "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
-        }
-        atomic_write_bytes(rep_path, json.dumps(report, indent=1).encode())
-
-    def record(name: str, coarse: Pose, res=None, error: str | None = None, img=None, cam=None) -> None:
+    def record(self, name: str, res: RefineResult | None = None, error: str | None = None) -> None:
         if res is not None and res.error:
             error = res.error
         if error is not None:
@@ -97,53 +46,111 @@ def refine_pose_file(scene: GaussianScene | str | Path, poses: Path, images: Pat
             entry = res.to_dict()
             entry.pop("name", None)
             if res.accepted:
-                refined[name] = res.pose
-                if figures is not None and img is not None:
-                    from .viz import comparison_figure
+                self.refined[name] = res.pose
+        self.report["queries"][name] = entry
 
-                    comparison_figure(refiner.scene, cam, load_image(img), coarse, res.pose,
-                                      Path(figures) / (name.replace("/", "_") + ".png"),
-                                      background=config.background)
-        report["queries"][name] = entry
+    def save(self) -> None:
+        write_poses(self.output, self.refined, like=self.pf)
+        q = self.report["queries"].values()
+        self.report["totals"] = {
+            "queries": len(self.report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
+            "failed": sum(1 for v in q if v.get("error")), "renders": sum(v.get("renders", 0) for v in q),
+            "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
+        }
+        write_json(report_path(self.output), self.report)
 
-    # prepare tasks in the driver: name, image path, intrinsics, prior (errors are recorded at once)
-    tasks = []
-    for name in todo:
-        coarse = pf[name]
+
+def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose]]:
+    """Report entries and refined poses of an earlier run of the same output (empty if none)."""
+    done: dict[str, dict] = {}
+    refined: dict[str, Pose] = {}
+    rep_path = report_path(output)
+    if output.exists() and rep_path.exists():
+        old = json.loads(rep_path.read_text())
+        prev = read_poses(output, pf.dialect)
+        for name, q in old.get("queries", {}).items():
+            if name in pf and name in prev:
+                done[name] = q
+                if prev[name] is not None:
+                    refined[name] = prev[name]
+        logger.info("resuming: %d queries already done", len(done))
+    return done, refined
+
+
+def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera]) -> list[Query]:
+    """Queries to refine: name, image path, intrinsics, prior. Unusable ones are recorded as failed at once."""
+    from PIL import Image
+
+    out = []
+    for name in names:
+        coarse = run.pf[name]
         if coarse is None:
-            record(name, coarse, error="failed prior (non-finite or zero pose)")
+            run.record(name, error="failed prior (non-finite or zero pose)")
             continue
         try:
             img_path = resolve_image(name, images)
-            from PIL import Image
-
             with Image.open(img_path) as im:
                 w, h = im.size
-            tasks.append(Task(len(tasks), name, str(img_path), intrinsics(name, w, h), coarse))
+            out.append(Query(len(out), name, str(img_path), intrinsics(name, w, h), coarse))
         except Exception as exc:  # one bad query never stops the run
             logger.warning("%s: %s", name, exc)
-            record(name, coarse, error=f"{type(exc).__name__}: {exc}")
+            run.record(name, error=f"{type(exc).__name__}: {exc}")
+    return out
 
+
+def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Path, images: Path,
+                     intrinsics: Callable[[str, int, int], Camera], output: Path, *,
+                     config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
+                     gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
+                     save_every: int = 10, settings: dict | None = None, workers: int = 0,
+                     ray_address: str | None = None) -> dict:
+    """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
+
+    Args:
+        scene: the 3DGS map (object, .ply path, or a ready HGSLocPlugin), in the frame of the poses.
+        poses: the localizer's pose file. images: folder holding the query images (any name style).
+        intrinsics: (name, width, height) -> Camera. output: refined pose file (must differ from ``poses``).
+        limit: refine only the first N queries (the rest keep their input pose).
+        gt_variant: recorded in the report ("sfm", "dslam", ...).
+        figures: folder for comparison figures of each refined query.
+        workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
+            (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
+
+    Returns:
+        The report dict (also written as JSON).
+    """
+    poses, images, output = Path(poses), Path(images), Path(output)
+    if output.exists() and output.resolve() == poses.resolve():
+        raise ValueError(f"{output}: refusing to overwrite the input pose file")
+    pf = read_poses(poses, dialect)
+    refiner = scene if isinstance(scene, HGSLocPlugin) else HGSLocPlugin(scene, config)
+    done, refined = _resume(pf, output)
+    report = {
+        "input": str(poses), "output": str(output), "dialect": pf.dialect,
+        "scene": str(getattr(refiner.scene, "source", None)), "gt_variant": gt_variant,
+        "config": refiner.config.to_dict(), "settings": settings or {}, "queries": done,
+    }
+    run = _Run(pf, output, report, refined)
+    names = list(pf)[: limit if limit is not None else None]
+    queries = _queries(run, [n for n in names if n not in done], images, intrinsics)
     count = 0
 
-    def on_result(index: int, res) -> None:
+    def on_result(q: Query, res: RefineResult) -> None:
         nonlocal count
-        t = tasks[index]
-        record(t.name, t.coarse_pose, res, img=t.image, cam=t.camera)
+        run.record(q.name, res)
+        if figures is not None and res.accepted:
+            from .viz import comparison_figure
+
+            comparison_figure(refiner.scene, q.camera, load_image(q.image), q.coarse_pose, res.pose,
+                              Path(figures) / (q.name.replace("/", "_") + ".png"),
+                              background=refiner.config.background)
         count += 1
         if save_every and count % save_every == 0:
-            save()
+            run.save()
 
     try:
-        if workers and workers > 0 or ray_address:
-            from .distributed import refine_distributed
-
-            refine_distributed(refiner.scene, tasks, config, workers=max(1, workers or 1), address=ray_address,
-                               progress=progress, on_result=on_result)
-        else:
-            for t in tqdm(tasks, desc="refining", unit="query", disable=not progress):
-                res = refiner.refine_many([(t.image, t.camera, t.coarse_pose, t.name)], progress=False)[0]
-                on_result(t.index, res)
+        run_batch(refiner, queries, workers=workers, ray_address=ray_address, progress=progress,
+                  on_result=on_result)
     finally:
-        save()
+        run.save()
     return report

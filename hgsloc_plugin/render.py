@@ -1,7 +1,9 @@
 """Python entry points of the Taichi 3DGS renderer: ``render``, ``render_full`` and ``render_cost``.
 
-A :class:`Renderer` keeps one scene resident on the Taichi device and reuses per-camera workspaces, so
-repeated calls neither re-upload the scene nor recompile (kernels take ndarrays of any shape). All poses of
+A :class:`Renderer` keeps one scene's Gaussians resident on the Taichi device and reuses per-camera workspaces, so
+repeated calls neither re-upload the scene nor recompile (kernels take ndarrays of any shape). It holds no
+reference to the :class:`GaussianScene` itself, so the per-scene cache (:func:`get_renderer`) lets a scene go
+when its caller drops it. All poses of
 one call go through each kernel stage in one launch (the batch is a leading dimension); a batch larger than
 ``RasterConfig.max_batch_elements`` (poses x Gaussians) is split into chunks.
 """
@@ -18,7 +20,8 @@ import taichi as ti
 from .backend import current_arch
 from .camera import Camera
 from .kernels import RasterConfig
-from .kernels.blend import NSTAT, cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
+from .kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
+from .kernels.layout import Rec, Stat
 from .kernels.projection import projection_kernel
 from .kernels.tile_sort import count_kernel, tile_sort_kernel
 from .pose import Pose
@@ -65,16 +68,15 @@ class _Workspace:
 
 
 class Renderer:
-    """One scene resident on the Taichi device.
+    """One scene's Gaussians resident on the Taichi device.
 
     Example:
         >>> r = Renderer(scene)
-        >>> rgb = r.render(camera, [T1, T2])        # [2, H, W, 3]
+        >>> rgb, alpha, depth = r.render_full(camera, [T1, T2])        # [2, H, W, 3], [2, H, W], [2, H, W]
     """
 
     def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
         current_arch()
-        self.scene = scene
         self.config = config or RasterConfig()
         n = scene.num_gaussians
         if n == 0:
@@ -86,8 +88,6 @@ class Renderer:
         self._opac = self._upload(scene.opacities, ti.f32)
         self._sh = self._upload(scene.sh, ti.f32)
         self._ws: dict[tuple, _Workspace] = {}
-        self._targets: dict[tuple[int, int], ti.Ndarray] = {}  # comparison image per camera size
-        self._target_key: tuple[int, int] | None = None
         self._isect = None
         self._isect_cap = 0
         self._project = projection_kernel(self.config, self.sh_degree)
@@ -104,7 +104,6 @@ class Renderer:
             self._blend_img = image_kernel(self.config)
             self._blend_cost = cost_kernel(self.config)
         self._reduce = reduce_kernel()
-        self.renders = 0  # poses rendered so far (for statistics)
 
     @staticmethod
     def _upload(a: np.ndarray, dtype) -> ti.Ndarray:
@@ -129,7 +128,7 @@ class Renderer:
         bufs = dict(
             viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
             depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
-            packed=nd(ti.f32, (B, n, 12)),
+            packed=nd(ti.f32, (B, n, Rec.SIZE)),
             totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
             keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)), ids_a=nd(ti.i32, (B, n)),
             ids_b=nd(ti.i32, (B, n)), hist=nd(ti.i32, (B, 256)), cursor=nd(ti.i32, (B, tx * ty)),
@@ -172,7 +171,6 @@ class Renderer:
         b["isect_base"].from_numpy(base)
         self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, b["keys_a"], b["keys_b"],
                    b["ids_a"], b["ids_b"], b["hist"], b["cursor"], b["tile_start"], self._isect)
-        self.renders += B
 
     def _chunks(self, poses: list[Pose]):
         c = self.chunk
@@ -204,29 +202,28 @@ class Renderer:
             depths.append(b["dimg"].to_numpy()[:n])
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
 
-    def set_target(self, camera: Camera, target: np.ndarray) -> None:
-        """Upload the comparison image [H, W, 3] float32 in [0, 1] for :meth:`cost_stats`."""
-        target = np.ascontiguousarray(target, dtype=np.float32)
-        if target.shape != (camera.height, camera.width, 3):
-            raise ValueError(f"target image must be [{camera.height}, {camera.width}, 3], got {target.shape}")
-        key = (camera.width, camera.height)
-        nd = self._targets.get(key)
-        if nd is None:
-            nd = ti.ndarray(ti.f32, target.shape)
-            self._targets[key] = nd
-        nd.from_numpy(target)
-        self._target_key = key
+    @staticmethod
+    def upload_image(image: np.ndarray) -> ti.Ndarray:
+        """A comparison image [H, W, 3] (float32 in [0, 1]) on the device, for :meth:`cost_stats`."""
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"comparison image must be [H, W, 3], got {image.shape}")
+        nd = ti.ndarray(ti.f32, image.shape)
+        nd.from_numpy(image)
+        return nd
 
-    def cost_stats(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0),
+    def cost_stats(self, camera: Camera, poses: list[Pose], target: ti.Ndarray, background=(0.0, 0.0, 0.0),
                    mask_alpha: float = 0.0) -> np.ndarray:
-        """Photometric statistics against the target set by :meth:`set_target`: [B, NSTAT] float64.
+        """Photometric statistics of each pose's rendering against ``target``: [B, Stat.SIZE] float64.
 
-        See ``kernels/blend.py`` for the layout (n_valid, SAD, SSD, per-channel sums).
+        Args:
+            target: the comparison image from :meth:`upload_image`, at the camera's size.
+
+        The layout is ``kernels.layout.Stat`` (n_valid, SAD, SSD, per-channel sums).
         """
-        key = (camera.width, camera.height)
-        if self._target_key != key:
-            raise RuntimeError("call set_target() with an image of this camera's size first")
-        target = self._targets[key]
+        if tuple(target.shape) != (camera.height, camera.width, 3):
+            raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
+                             f"({camera.height}, {camera.width}, 3)")
         out = []
         for part in self._chunks(poses):
             ws = self._workspace(camera, min(len(poses), self.chunk))
@@ -234,8 +231,8 @@ class Renderer:
             tx, ty = b["tiles"]
             if "run_stats" not in b:
                 rows = ty if self.blend_mode == "splat" else camera.height
-                b["run_stats"] = ti.ndarray(ti.f32, (ws.batch, rows, tx, NSTAT))
-                b["stats"] = ti.ndarray(ti.f64, (ws.batch, NSTAT))
+                b["run_stats"] = ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE))
+                b["stats"] = ti.ndarray(ti.f64, (ws.batch, Stat.SIZE))
             self._geometry(camera, part, ws, background)
             if self.blend_mode == "splat":
                 self._blend_cost(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
@@ -319,8 +316,9 @@ def render_cost(scene: GaussianScene, camera: Camera, poses, target_image, metri
     img = np.asarray(target_image)
     if img.dtype == np.uint8:
         img = img.astype(np.float32) / 255.0
+    if img.shape != (camera.height, camera.width, 3):
+        raise ValueError(f"target image must be [{camera.height}, {camera.width}, 3], got {img.shape}")
     r = get_renderer(scene, config)
-    r.set_target(camera, img)
-    stats = r.cost_stats(camera, plist, background, mask_alpha)
+    stats = r.cost_stats(camera, plist, r.upload_image(img), background, mask_alpha)
     cost = cost_from_stats(stats, metric, camera.width * camera.height)
     return float(cost[0]) if single else cost

@@ -46,7 +46,7 @@ def comparison_figure(scene: GaussianScene, camera: Camera, query: np.ndarray, c
 
     Rendering and query are split along the diagonal, so misalignment shows at the seam.
     """
-    from .refine.image import resize_image
+    from .image import resize_image
 
     cam = camera.with_max_side(max_side)
     q = resize_image(query.astype(np.float32), cam.width, cam.height)

@@ -6,8 +6,8 @@ Two kernels share one per-pixel loop (``shade``):
   wide) and accumulates photometric statistics in registers, so no image leaves the kernel; a second kernel
   reduces the runs per pose in float64, in a fixed order (deterministic, no atomics).
 
-Statistics per pose (``NSTAT`` values): n_valid, sum |r - q|, sum (r - q)^2 (both over RGB), then per channel
-c: sum r, sum q, sum r^2, sum q^2, sum r*q. A pixel is valid when its rendered alpha >= ``mask_alpha``.
+Statistics per pose: the ``layout.Stat`` record (n_valid, sum |r - q|, sum (r - q)^2, then per channel sum r,
+sum q, sum r^2, sum q^2, sum r*q). A pixel is valid when its rendered alpha >= ``mask_alpha``.
 Reference twin: ``tests/reference/render_torch.py::blend``.
 """
 
@@ -17,8 +17,27 @@ import functools
 import taichi as ti
 
 from .config import RasterConfig
+from .layout import Rec, Stat
 
-NSTAT = 18
+NSTAT = Stat.SIZE
+
+
+
+@ti.func
+def accumulate_stats(acc: ti.template(), rgb, target: ti.template(), py, px):
+    """Add one valid pixel's terms to the ``Stat`` record ``acc`` (in place, fixed order)."""
+    acc[Stat.N] += 1.0
+    for c in ti.static(range(3)):
+        r = rgb[c]
+        q = target[py, px, c]
+        e = r - q
+        acc[Stat.SAD] += ti.abs(e)
+        acc[Stat.SSD] += e * e
+        acc[ti.static(Stat.at(c, Stat.SR))] += r
+        acc[ti.static(Stat.at(c, Stat.SQ))] += q
+        acc[ti.static(Stat.at(c, Stat.SRR))] += r * r
+        acc[ti.static(Stat.at(c, Stat.SQQ))] += q * q
+        acc[ti.static(Stat.at(c, Stat.SRQ))] += r * q
 
 
 def _make_shade(config: RasterConfig):
@@ -38,18 +57,19 @@ def _make_shade(config: RasterConfig):
         D = 0.0
         for k in range(start, end):
             g = isect[k]
-            dx = packed[b, g, 0] - fx
-            dy = packed[b, g, 1] - fy
-            sigma = 0.5 * (packed[b, g, 2] * dx * dx + packed[b, g, 4] * dy * dy) + packed[b, g, 3] * dx * dy
-            alpha = ti.min(alpha_max, packed[b, g, 5] * ti.exp(-sigma))
+            dx = packed[b, g, Rec.X] - fx
+            dy = packed[b, g, Rec.Y] - fy
+            sigma = (0.5 * (packed[b, g, Rec.CA] * dx * dx + packed[b, g, Rec.CC] * dy * dy)
+                     + packed[b, g, Rec.CB] * dx * dy)
+            alpha = ti.min(alpha_max, packed[b, g, Rec.OPACITY] * ti.exp(-sigma))
             if sigma < 0.0 or alpha < alpha_min:
                 continue
             next_T = T * (1.0 - alpha)
             if next_T <= t_eps:
                 break
             vis = alpha * T
-            C += vis * ti.Vector([packed[b, g, 8], packed[b, g, 9], packed[b, g, 10]])
-            D += vis * packed[b, g, 11]
+            C += vis * ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
+            D += vis * packed[b, g, Rec.DEPTH]
             T = next_T
         return C, T, D
 
@@ -109,23 +129,13 @@ def cost_kernel(config: RasterConfig):
         W = target.shape[1]
         for b, py, run in ti.ndrange(num_poses, H, tiles_x):
             acc = ti.Vector([0.0] * NSTAT)
+            bg = ti.Vector([background[0], background[1], background[2]])
             for dx in range(tile):
                 px = run * tile + dx
                 if px < W:
                     C, T, D = shade(b, px, py, tiles_x, packed, tile_start, isect, isect_base)
                     if 1.0 - T >= mask_alpha:
-                        acc[0] += 1.0
-                        for c in ti.static(range(3)):
-                            r = C[c] + T * background[c]
-                            q = target[py, px, c]
-                            e = r - q
-                            acc[1] += ti.abs(e)
-                            acc[2] += e * e
-                            acc[3 + 5 * c] += r
-                            acc[4 + 5 * c] += q
-                            acc[5 + 5 * c] += r * r
-                            acc[6 + 5 * c] += q * q
-                            acc[7 + 5 * c] += r * q
+                        accumulate_stats(acc, C + T * bg, target, py, px)
             for s in ti.static(range(NSTAT)):
                 run_stats[b, py, run, s] = acc[s]
 
@@ -186,23 +196,23 @@ def _make_splat_tile(config: RasterConfig):
             if ndone >= npix:
                 break
             g = isect[k]
-            mx = packed[b, g, 0]
-            my = packed[b, g, 1]
-            ca = packed[b, g, 2]
-            cb = packed[b, g, 3]
-            cc = packed[b, g, 4]
-            op = packed[b, g, 5]
-            lim = packed[b, g, 6]  # alpha >= alpha_min  <=>  sigma <= lim
-            ry = packed[b, g, 7]  # y half-extent of that ellipse
+            mx = packed[b, g, Rec.X]
+            my = packed[b, g, Rec.Y]
+            ca = packed[b, g, Rec.CA]
+            cb = packed[b, g, Rec.CB]
+            cc = packed[b, g, Rec.CC]
+            op = packed[b, g, Rec.OPACITY]
+            lim = packed[b, g, Rec.LIM]  # alpha >= alpha_min  <=>  sigma <= lim
+            ry = packed[b, g, Rec.RY]  # y half-extent of that ellipse
             # Integer bounds by truncation: never tighter than ceil/floor would give (a superset of pixels,
             # each still tested exactly), and cheaper than calls to ceil/floor.
             ly = ti.max(y0, ti.cast(my - ry - 0.5, ti.i32))
             hy = ti.min(y1, ti.cast(my + ry - 0.5, ti.i32) + 1)
             inv_ca = 1.0 / ca
-            cr = packed[b, g, 8]
-            cg = packed[b, g, 9]
-            cbl = packed[b, g, 10]
-            dz = packed[b, g, 11]
+            cr = packed[b, g, Rec.RGB]
+            cg = packed[b, g, Rec.RGB + 1]
+            cbl = packed[b, g, Rec.RGB + 2]
+            dz = packed[b, g, Rec.DEPTH]
             for py in range(ly, hy):
                 if row_left[py - y0] == 0:
                     continue
@@ -308,23 +318,14 @@ def splat_cost_kernel(config: RasterConfig):
             x0 = (t % tiles_x) * tile
             y0 = (t // tiles_x) * tile
             st = ti.Vector([0.0] * NSTAT)
+            bg = ti.Vector([background[0], background[1], background[2]])
             for py in range(y0, ti.min(y0 + tile, H)):
                 for px in range(x0, ti.min(x0 + tile, W)):
                     p = (py - y0) * tile + (px - x0)
                     T = ti.abs(buf[p, 0])
                     if 1.0 - T >= mask_alpha:
-                        st[0] += 1.0
-                        for c in ti.static(range(3)):
-                            r = buf[p, 1 + c] + T * background[c]
-                            q = target[py, px, c]
-                            e = r - q
-                            st[1] += ti.abs(e)
-                            st[2] += e * e
-                            st[3 + 5 * c] += r
-                            st[4 + 5 * c] += q
-                            st[5 + 5 * c] += r * r
-                            st[6 + 5 * c] += q * q
-                            st[7 + 5 * c] += r * q
+                        rgb = ti.Vector([buf[p, 1], buf[p, 2], buf[p, 3]])
+                        accumulate_stats(st, rgb + T * bg, target, py, px)
             for s in ti.static(range(NSTAT)):
                 run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]
 

@@ -11,6 +11,7 @@ import math
 import taichi as ti
 
 from .config import RasterConfig
+from .layout import Rec
 from .sh import make_sh_func
 
 
@@ -23,9 +24,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx, cy),
         width, height, num_poses;
         outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
-        ntiles [B, N] (0 = culled), packed [B, N, 12]: one record per Gaussian for the blend kernels
-        (x, y, conic a, b, c, opacity, lim = ln(opacity / alpha_min), y half-extent of the ellipse
-        sigma <= lim, r, g, b, depth).
+        ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
+        (fields named in ``layout.Rec``).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
@@ -120,18 +120,18 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             d = d / ti.max(d.norm(), 1e-12)
             rgb = eval_sh(sh, i, d)
             # one record per Gaussian, read by both blend kernels
-            packed[b, i, 0] = mx
-            packed[b, i, 1] = my
-            packed[b, i, 2] = c11 * inv_det
-            packed[b, i, 3] = -c01 * inv_det
-            packed[b, i, 4] = c00 * inv_det
-            packed[b, i, 5] = op
+            packed[b, i, Rec.X] = mx
+            packed[b, i, Rec.Y] = my
+            packed[b, i, Rec.CA] = c11 * inv_det
+            packed[b, i, Rec.CB] = -c01 * inv_det
+            packed[b, i, Rec.CC] = c00 * inv_det
+            packed[b, i, Rec.OPACITY] = op
             lim = ti.log(ti.max(op, 1e-30)) + log_inv_amin  # alpha >= alpha_min  <=>  sigma <= lim
-            packed[b, i, 6] = lim
-            packed[b, i, 7] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
+            packed[b, i, Rec.LIM] = lim
+            packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
             for c in ti.static(range(3)):
-                packed[b, i, 8 + c] = ti.max(rgb[c] + 0.5, 0.0)
-            packed[b, i, 11] = z
+                packed[b, i, Rec.RGB + c] = ti.max(rgb[c] + 0.5, 0.0)
+            packed[b, i, Rec.DEPTH] = z
             rect[b, i, 0] = x0
             rect[b, i, 1] = y0
             rect[b, i, 2] = x1

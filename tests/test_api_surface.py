@@ -22,8 +22,9 @@ def test_subpackages_are_mapped():
 
 def test_pyproject_lists_every_subpackage():
     """A regular (non-editable) install ships only the packages listed in pyproject.toml."""
-    import tomllib
     from pathlib import Path
+
+    import tomllib
 
     root = Path(__file__).resolve().parents[1]
     listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])

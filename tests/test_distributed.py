@@ -1,4 +1,5 @@
-"""Ray scale-out: same results as one process, in order; a killed worker loses no query; resume."""
+"""Ray scale-out: same results as one process, in order, with the same raster config; a killed worker loses no
+query; resume."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ import pytest
 ray = pytest.importorskip("ray", reason='Ray not installed (pip install "hgsloc-plugin[ray]")')
 
 import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.batch import Query  # noqa: E402
 from hgsloc_plugin.demo.queries import query_poses  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.distributed import Task, refine_distributed  # noqa: E402
+from hgsloc_plugin.distributed import ray_results  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 
 CFG = hp.RefineConfig.preset("fast", max_expansions=8)
@@ -32,23 +34,38 @@ def case():
     gts = query_poses(5, seed=21)
     imgs = hp.render(scene, cam, gts)
     rng = np.random.default_rng(2)
-    tasks = [Task(k, f"q{k}", imgs[k], cam, se3_noise(g, 1.0, 0.03, rng)) for k, g in enumerate(gts)]
+    tasks = [Query(k, f"q{k}", imgs[k], cam, se3_noise(g, 1.0, 0.03, rng)) for k, g in enumerate(gts)]
     return scene, tasks
+
+
+def _items(tasks):
+    return [(t.image, t.camera, t.coarse_pose, t.name) for t in tasks]
 
 
 def test_two_workers_equal_single_process_in_order(local_ray, case):
     scene, tasks = case
-    ref = hp.HGSLocPlugin(scene, CFG).refine_many([(t.image, t.camera, t.coarse_pose, t.name) for t in tasks],
-                                                  progress=False)
-    got = refine_distributed(scene, tasks, CFG, workers=2, progress=False)
+    refiner = hp.HGSLocPlugin(scene, CFG)
+    ref = refiner.refine_many(_items(tasks), progress=False)
+    got = refiner.refine_many(_items(tasks), progress=False, workers=2)
     assert [r.name for r in got] == [t.name for t in tasks]
     for a, b in zip(ref, got):
         assert a.pose == b.pose and a.cost_final == b.cost_final and a.renders == b.renders
 
 
+def test_workers_use_the_callers_raster_config(local_ray, case):
+    scene, tasks = case
+    raster = hp.RasterConfig(alpha_max=0.9, eps2d=0.6, radius_mode="inria")
+    refiner = hp.HGSLocPlugin(scene, CFG, raster=raster)
+    ref = refiner.refine_many(_items(tasks[:3]), progress=False)
+    got = refiner.refine_many(_items(tasks[:3]), progress=False, workers=2)
+    default = hp.HGSLocPlugin(scene, CFG).refine_many(_items(tasks[:3]), progress=False)
+    assert [r.cost_initial for r in got] == [r.cost_initial for r in ref]
+    assert [r.pose for r in got] == [r.pose for r in ref]
+    assert [r.cost_initial for r in default] != [r.cost_initial for r in ref]  # the config does change renders
+
+
 def test_killed_worker_still_yields_every_query_once(local_ray, case):
     scene, tasks = case
-    seen = []
     killed = []
 
     def kill_first(actor):
@@ -56,12 +73,11 @@ def test_killed_worker_still_yields_every_query_once(local_ray, case):
             killed.append(actor)
             ray.kill(actor)
 
-    got = refine_distributed(scene, tasks, CFG, workers=2, chunk_size=1, progress=False,
-                             on_result=lambda i, r: seen.append(i), _after_chunk=kill_first)
+    got = list(ray_results(scene, CFG, hp.RasterConfig(), tasks, workers=2, chunk_size=1,
+                           _after_chunk=kill_first))
     assert killed
-    assert sorted(seen) == list(range(len(tasks)))
-    assert [r.name for r in got] == [t.name for t in tasks]
-    assert all(r.error is None for r in got)
+    assert sorted(q.index for q, _ in got) == list(range(len(tasks)))
+    assert all(r.error is None for _, r in got)
 
 
 def test_pipeline_with_workers_and_resume(local_ray, case, tmp_path):

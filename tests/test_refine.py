@@ -70,8 +70,8 @@ def test_lattice_keys_are_unique_within_a_level():
 
     space.pose = spy
     best_first(space, 1e9, _pose_cost(truth), lambda p: True, budget=40, patience=0, weight=1.0, depth_cost=1.0)
-    scored = keys[:-0 or None]
-    assert len(scored) == len(set(scored)), "a lattice key was built twice"
+    assert len(keys) > 40, "the search built too few nodes to test anything"
+    assert len(keys) == len(set(keys)), "a lattice key was built twice"
     assert all(isinstance(k, tuple) and all(isinstance(v, int) for v in k) for k in keys)
 
 
@@ -158,10 +158,11 @@ def test_image_inputs_and_size_errors(room, tmp_path):
 
 def test_scorer_never_renders_a_pose_twice(room):
     from hgsloc_plugin.refine.scorer import Scorer
+    from hgsloc_plugin.render import get_renderer
 
     gt = query_poses(1, seed=3)[0]
     img = hp.render(room, CAM, gt)
-    sc = Scorer(hp.render.__globals__["get_renderer"](room), "sad", (0, 0, 0), 0.0)
+    sc = Scorer(get_renderer(room), "sad", (0, 0, 0), 0.0)
     sc.set_query(CAM, img)
     p2 = gt.perturbed_in_camera([0, 0.01, 0], [0, 0, 0])
     a = sc([gt, p2, gt])
@@ -188,7 +189,9 @@ def test_config_presets_and_validation():
         hp.RefineConfig(metric="nope")
     with pytest.raises(ValueError):
         hp.RefineConfig.preset("nope")
-    with pytest.raises(Exception):
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
         hp.RefineConfig().metric = "sad"  # frozen
 
 
@@ -210,7 +213,8 @@ def test_every_heuristic_ranks_the_true_pose_first(room, metric):
     assert np.argmin(c) == 0, c
 
 
-def test_exposure_change_breaks_sad_but_not_affine(room):
+def test_exposure_change_flattens_sad_but_not_affine(room):
+    """Under a strong gain/offset change SAD barely separates the true pose from a wrong one; affine does."""
     from hgsloc_plugin.refine.scorer import Scorer
     from hgsloc_plugin.render import get_renderer
 
@@ -222,8 +226,9 @@ def test_exposure_change_breaks_sad_but_not_affine(room):
         sc = Scorer(get_renderer(room), m, (0, 0, 0), 0.0)
         sc.set_query(CAM, img)
         out[m] = sc([gt, near])
-    assert out["affine"][0] < out["affine"][1]
-    assert out["affine"][0] < 1e-3 * out["affine"][1] + 1e-6 or out["affine"][0] < 0.2 * out["sad"][0]
+    margin = {m: (c[1] - c[0]) / max(c[0], 1e-9) for m, c in out.items()}
+    assert abs(margin["sad"]) < 0.01, margin  # the exposure residual swamps the pose signal
+    assert margin["affine"] > 1.0, margin
 
 
 def test_masked_cost_ignores_uncovered_pixels():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -12,9 +11,10 @@ from ..adapters.intrinsics import from_focal
 from ..adapters.posefile import format_pose_tokens, read_poses
 from ..camera import Camera
 from ..evaluate import evaluate
+from ..fileio import atomic_write_bytes, write_json
 from ..noise import apply_protocol
 from ..refine import RefineConfig
-from ..scene import GaussianScene, atomic_write_bytes
+from ..scene import GaussianScene
 from ..viz import comparison_figure, plot_costs, plot_errors, save_png
 from .queries import make_queries, query_poses
 from .scene import make_room_scene
@@ -81,7 +81,7 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
         comparison_figure(scene, cam, imgs[0], coarse[n0], read_poses(refined_path)[n0],
                           out / "figures" / f"compare_{tag}_{n0.replace('/', '_')}", background=config.background)
     summary = {"queries": queries, "preset": preset, "scene_gaussians": scene.num_gaussians, "rows": rows}
-    atomic_write_bytes(out / "summary.json", json.dumps(summary, indent=1).encode())
+    write_json(out / "summary.json", summary)
     return summary
 
 

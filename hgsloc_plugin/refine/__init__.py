@@ -1,6 +1,6 @@
-"""The heuristic pose search: config, scorer, lattice search and the HGSLocPlugin API."""
+"""The heuristic pose search for one query: config, scorer, lattice search and the Refiner."""
 
 from .config import PRESETS, RefineConfig
-from .plugin import HGSLocPlugin, LevelStats, RefineResult
+from .refiner import LevelStats, Refiner, RefineResult
 
-__all__ = ["PRESETS", "HGSLocPlugin", "LevelStats", "RefineConfig", "RefineResult"]
+__all__ = ["PRESETS", "LevelStats", "RefineConfig", "RefineResult", "Refiner"]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 METRICS = ("sad", "psnr", "ssim", "ncc", "affine")
 
@@ -61,7 +61,6 @@ class RefineConfig:
     resize_query: bool = False
     paper_step_q: float = 1e-4
     paper_step_t: float = 1e-4
-    extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.metric not in METRICS:
@@ -92,9 +91,7 @@ class RefineConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d.pop("extra", None)
-        return d
+        return dataclasses.asdict(self)
 
 
 PRESETS: dict[str, RefineConfig] = {

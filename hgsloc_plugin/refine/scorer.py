@@ -7,15 +7,16 @@ import torch
 
 from ..camera import Camera
 from ..costs import cost_from_stats
+from ..image import resize_image
 from ..pose import Pose
 from ..render import Renderer
-from .image import resize_image
 
 
 class Scorer:
-    """Scores batches of poses against one query at one resolution.
+    """Scores batches of poses against one query image at one resolution; owns that image.
 
-    Fused metrics (sad, psnr, ncc, affine) run in the blending kernel; "ssim" renders images and uses kornia.
+    Fused metrics (sad, psnr, ncc, affine) run in the blending kernel against the query uploaded once per
+    resolution; "ssim" renders images and uses kornia.
     """
 
     def __init__(self, renderer: Renderer, metric: str, background, mask_alpha: float):
@@ -35,7 +36,7 @@ class Scorer:
         if self.metric == "ssim":
             self._q = torch.from_numpy(self.query).permute(2, 0, 1)[None]
         else:
-            self.renderer.set_target(camera, self.query)
+            self._target = self.renderer.upload_image(self.query)
 
     def __call__(self, poses: list[Pose]) -> np.ndarray:
         """Costs [B] (float64) of the poses; lower is better. A pose already scored at this resolution
@@ -64,5 +65,5 @@ class Scorer:
                 m = torch.from_numpy(alpha >= self.mask_alpha)[:, None].float()
                 return (1.0 - (s * m).sum((1, 2, 3)) / (3 * m.sum((1, 2, 3)).clamp(min=1))).double().numpy()
             return (1.0 - s.mean((1, 2, 3))).double().numpy()
-        stats = self.renderer.cost_stats(cam, poses, self.background, self.mask_alpha)
+        stats = self.renderer.cost_stats(cam, poses, self._target, self.background, self.mask_alpha)
         return cost_from_stats(stats, self.metric, cam.width * cam.height)

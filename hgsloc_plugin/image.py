@@ -1,4 +1,4 @@
-"""Query-image loading and resizing."""
+"""Images: loading queries from any supported form, deterministic resizing, size checks ([H, W, 3] float32)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..camera import Camera
+from .camera import Camera
 
 
 def load_image(image, *, name: str = "image") -> np.ndarray:

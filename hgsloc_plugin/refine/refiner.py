@@ -1,23 +1,22 @@
-"""HGSLocPlugin: refine a coarse camera pose by heuristic search over 3DGS renderings."""
+"""Refiner: refine one coarse camera pose by heuristic search over 3DGS renderings."""
 
 from __future__ import annotations
 
 import logging
 import math
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
+from ..image import check_size, load_image
 from ..kernels import RasterConfig
 from ..pose import Pose, rotation_angle_deg
 from ..render import get_renderer
 from ..scene import GaussianScene
 from .config import RefineConfig
-from .image import check_size, load_image
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
 
@@ -65,6 +64,12 @@ class RefineResult:
     error: str | None = None
     name: str | None = None
 
+    @classmethod
+    def failed(cls, coarse_pose, error: str, name: str | None = None, seconds: float = 0.0) -> RefineResult:
+        """The result of a query that could not be refined: the coarse pose (identity if unusable), ``error``."""
+        pose = coarse_pose if isinstance(coarse_pose, Pose) else Pose.identity()
+        return cls(pose=pose, initial_pose=pose, error=error, name=name, seconds=seconds)
+
     def to_dict(self) -> dict:
         return {
             "name": self.name, "accepted": self.accepted, "cost_initial": self.cost_initial,
@@ -73,14 +78,6 @@ class RefineResult:
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
         }
-
-
-def _unpack(item) -> tuple:
-    """(image, camera, coarse_pose, name) from a refine_many item: a 3- or 4-tuple or a dict with those keys."""
-    if isinstance(item, dict):
-        return item["image"], item["camera"], item["coarse_pose"], item.get("name")
-    image, camera, coarse, *rest = item
-    return image, camera, coarse, (rest[0] if rest else None)
 
 
 def median_depth(scene: GaussianScene, camera: Camera, T_cam_world: Pose) -> float:
@@ -95,11 +92,22 @@ def median_depth(scene: GaussianScene, camera: Camera, T_cam_world: Pose) -> flo
     return float(np.median(zs)) if zs.size else max(scene.extent(), 1e-6)
 
 
-class HGSLocPlugin:
-    """Pose refiner over one 3DGS scene.
+@dataclass
+class _Plan:
+    """What one query's search runs on: scoring cameras, step levels, depth and the trust region test."""
+
+    cam_final: Camera
+    cam_coarse: Camera
+    levels: list[tuple[float, float]]
+    depth: float
+    max_t: float
+
+
+class Refiner:
+    """Pose refiner over one 3DGS scene, one query at a time.
 
     Example:
-        >>> refiner = HGSLocPlugin("point_cloud.ply")
+        >>> refiner = Refiner(scene)
         >>> result = refiner.refine(image, camera, coarse_pose)
         >>> result.pose, result.accepted
 
@@ -114,19 +122,24 @@ class HGSLocPlugin:
             raise TypeError(f"scene must be a GaussianScene or a path to a .ply, got {type(scene).__name__}")
         self.scene = scene
         self.config = config or RefineConfig()
-        self.renderer = get_renderer(scene, raster)
+        self.raster = raster or RasterConfig()
+        self.renderer = get_renderer(scene, self.raster)
 
-    def _levels(self, camera: Camera, coarse: Pose) -> tuple[list[tuple[float, float]], float]:
+    def _plan(self, camera: Camera, coarse: Pose) -> _Plan:
         cfg = self.config
-        depth = median_depth(self.scene, camera, coarse)
+        cam_final = camera.with_max_side(cfg.score_max_side)
+        coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
+        cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
+        depth = median_depth(self.scene, cam_final, coarse)
         if cfg.neighbourhood == "paper":
             levels = [(cfg.paper_step_q, cfg.paper_step_t)]
         elif cfg.levels:
             levels = list(cfg.levels)
         else:
-            f = 0.5 * (camera.fx + camera.fy)
+            f = 0.5 * (cam_final.fx + cam_final.fy)
             levels = [(math.degrees(px / f), px * depth / f) for px in cfg.level_pixels]
-        return levels, depth
+        max_t = cfg.max_translation if cfg.max_translation is not None else 0.5 * depth
+        return _Plan(cam_final, cam_coarse, levels, depth, max_t)
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None) -> RefineResult:
         """Refine one query.
@@ -146,29 +159,51 @@ class HGSLocPlugin:
         if not isinstance(coarse_pose, Pose):
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
         img = check_size(load_image(image, name=name or "image"), camera, cfg.resize_query, name or "image")
-        cam_final = camera.with_max_side(cfg.score_max_side)
-        coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
-        cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
-        levels, depth = self._levels(cam_final, coarse_pose)
-        max_t = cfg.max_translation if cfg.max_translation is not None else 0.5 * depth
-        c0 = coarse_pose.centre()
-        R0 = coarse_pose.R
+        plan = self._plan(camera, coarse_pose)
+        scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)
+        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)
+        scorer.set_query(plan.cam_final, img)
+        result.cost_initial = float(scorer([coarse_pose])[0])
+        best_pose, best_cost = self._search_levels(plan, scorer, img, coarse_pose, result)
+        if best_cost < result.cost_initial:
+            result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
+        else:
+            result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
+        result.renders = scorer.renders
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None) -> RefineResult:
+        """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""
+        t0 = time.perf_counter()
+        try:
+            return self.refine(image, camera, coarse_pose, name=name)
+        except Exception as exc:  # recorded per query; a batch goes on
+            logger.warning("query %s failed: %s", name, exc)
+            return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,
+                                       time.perf_counter() - t0)
+
+    def _trust_region(self, coarse: Pose, max_t: float):
+        c0, R0, max_r = coarse.centre(), coarse.R, self.config.max_rotation_deg
 
         def allowed(T: Pose) -> bool:
             if np.linalg.norm(T.centre() - c0) > max_t:
                 return False
-            return rotation_angle_deg(R0, T.R) <= cfg.max_rotation_deg
+            return rotation_angle_deg(R0, T.R) <= max_r
 
-        scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)
-        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)
-        scorer.set_query(cam_final, img)
-        result.cost_initial = float(scorer([coarse_pose])[0])
-        best_pose, best_cost, best_cam = coarse_pose, result.cost_initial, cam_final
+        return allowed
+
+    def _search_levels(self, plan: _Plan, scorer: Scorer, img: np.ndarray, coarse: Pose,
+                       result: RefineResult) -> tuple[Pose, float]:
+        """Run the step levels coarse to fine; returns the best pose and its cost at the final resolution."""
+        cfg = self.config
+        allowed = self._trust_region(coarse, plan.max_t)
+        best_pose, best_cost, best_cam = coarse, result.cost_initial, plan.cam_final
         remaining = cfg.max_expansions
-        for li, (s_rot, s_t) in enumerate(levels):
+        for li, (s_rot, s_t) in enumerate(plan.levels):
             if remaining <= 0:
                 break
-            cam_l = cam_coarse if (li < cfg.coarse_levels and li < len(levels) - 1) else cam_final
+            cam_l = plan.cam_coarse if (li < cfg.coarse_levels and li < len(plan.levels) - 1) else plan.cam_final
             if cam_l != best_cam:
                 scorer.set_query(cam_l, img)
                 best_cost = float(scorer([best_pose])[0])
@@ -176,7 +211,7 @@ class HGSLocPlugin:
             if cfg.neighbourhood == "paper":
                 space = PaperSpace(best_pose, s_rot, s_t)
             else:
-                space = LatticeSpace(best_pose, math.radians(s_rot), s_t, depth if cfg.pivot else 0.0)
+                space = LatticeSpace(best_pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
             lr = best_first(space, best_cost, scorer, allowed, budget=min(cfg.max_expansions_per_level, remaining),
                             patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost,
                             pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
@@ -186,49 +221,7 @@ class HGSLocPlugin:
             result.history.extend(lr.history)
             result.levels.append(LevelStats(s_rot, s_t, cam_l.width, cam_l.height, lr.expansions, lr.renders,
                                             lr.best_cost, lr.stopped))
-        if best_cam != cam_final:
-            scorer.set_query(cam_final, img)
+        if best_cam != plan.cam_final:
+            scorer.set_query(plan.cam_final, img)
             best_cost = float(scorer([best_pose])[0])
-        if best_cost < result.cost_initial:
-            result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
-        else:
-            result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
-        result.renders = scorer.renders
-        result.seconds = time.perf_counter() - t0
-        return result
-
-    def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining", workers: int = 0,
-                    ray_address: str | None = None) -> list[RefineResult]:
-        """Refine many queries in order; one failure is recorded in its result, never raised.
-
-        Args:
-            items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
-                or dicts with those keys.
-            workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
-                (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
-        """
-        from tqdm import tqdm
-
-        items = list(items)
-        if workers or ray_address:
-            from ..distributed import Task, refine_distributed
-
-            tasks = []
-            for k, it in enumerate(items):
-                image, camera, coarse, name = _unpack(it)
-                tasks.append(Task(k, name, image, camera, coarse))
-            return refine_distributed(self.scene, tasks, self.config, workers=max(1, workers), address=ray_address,
-                                      progress=progress)
-        out: list[RefineResult] = []
-        for it in tqdm(items, desc=desc, disable=not progress, unit="query"):
-            image, camera, coarse, name = _unpack(it)
-            try:
-                out.append(self.refine(image, camera, coarse, name=name))
-            except Exception as exc:  # recorded per query, the batch goes on
-                logger.warning("query %s failed: %s", name, exc)
-                pose = coarse if isinstance(coarse, Pose) else Pose.identity()
-                out.append(RefineResult(pose=pose, initial_pose=pose, error=f"{type(exc).__name__}: {exc}",
-                                        name=name))
-        ok = sum(r.accepted for r in out)
-        logger.info("Refined %d / %d queries", ok, len(out))
-        return out
+        return best_pose, best_cost

@@ -1,0 +1,79 @@
+"""The one batch runner: refine many queries in this process or on Ray, with progress and failure records.
+
+Every multi-query path (``HGSLocPlugin.refine_many``, pose files through :mod:`hgsloc_plugin.pipeline`, the
+CLI, the HLoc step) comes here. One failed query never stops the batch: it comes back as a failed
+:class:`~hgsloc_plugin.refine.RefineResult` naming its error.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+
+from .refine import Refiner, RefineResult
+
+logger = logging.getLogger("hgsloc_plugin")
+
+
+@dataclass
+class Query:
+    """One query: its position in the batch, name, image (path or array), camera and coarse pose."""
+
+    index: int
+    name: str | None
+    image: object
+    camera: object
+    coarse_pose: object
+
+
+def as_queries(items: Iterable) -> list[Query]:
+    """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys."""
+    out = []
+    for k, it in enumerate(items):
+        if isinstance(it, Query):
+            out.append(it)
+        elif isinstance(it, dict):
+            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"]))
+        else:
+            image, camera, coarse, *rest = it
+            out.append(Query(k, rest[0] if rest else None, image, camera, coarse))
+    return out
+
+
+def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, ray_address: str | None = None,
+              progress: bool = True, on_result: Callable[[Query, RefineResult], None] | None = None,
+              desc: str = "refining") -> list[RefineResult]:
+    """Refine ``queries``; returns their results in input order.
+
+    Args:
+        refiner: scene, search and raster settings (Ray workers rebuild the same refiner from them).
+        workers / ray_address: N local Ray worker processes, or an existing cluster ("auto", "ray://...");
+            by default everything runs in this process. Results are identical either way.
+        on_result: called as ``on_result(query, result)`` as each query finishes (on Ray: in any order).
+    """
+    from tqdm import tqdm
+
+    queries = list(queries)
+    results: dict[int, RefineResult] = {}
+    with tqdm(total=len(queries), desc=desc, unit="query", disable=not progress) as bar:
+        for q, res in _results(refiner, queries, workers, ray_address):
+            results[q.index] = res
+            bar.update(1)
+            if on_result is not None:
+                on_result(q, res)
+    out = [results[q.index] for q in queries]
+    logger.info("Refined %d / %d queries", sum(r.accepted for r in out), len(out))
+    return out
+
+
+def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: str | None):
+    """(query, result) pairs as they finish."""
+    if workers or ray_address:
+        from .distributed import ray_results
+
+        yield from ray_results(refiner.scene, refiner.config, refiner.raster, queries,
+                               workers=max(1, workers or 1), address=ray_address)
+        return
+    for q in queries:
+        yield q, refiner.try_refine(q.image, q.camera, q.coarse_pose, name=q.name)

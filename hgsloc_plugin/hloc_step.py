@@ -1,0 +1,64 @@
+"""The refinement step for hloc pipelines, in hloc's style (a module with ``main``).
+
+Run it after ``localize_sfm.main(...)`` and before ``evaluate(...)`` in a pipeline such as
+``hloc/pipelines/7Scenes/pipeline.py::run_scene``::
+
+    from hgsloc_plugin import hloc_step
+    results_refined = hloc_step.main(scene_ply, query_list, results, images, results.with_name("results_refined.txt"))
+
+or from the shell: ``python -m hgsloc_plugin.hloc_step --scene S.ply --queries Q.txt --results R.txt
+--image_dir DIR --output OUT.txt`` (``python -m hgsloc_plugin.adapters.hloc`` is the same).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from .adapters.intrinsics import from_query_list
+from .pipeline import refine_pose_file
+
+logger = logging.getLogger("hgsloc_plugin")
+
+
+def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Path, config=None,
+         limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False) -> Path:
+    """Refine hloc's ``results`` with the 3DGS ``scene``; intrinsics from ``queries`` (with intrinsics).
+
+    Returns the path of the refined results (HLoc dialect), with a JSON report beside it.
+    """
+    logger.info("Refining %s with %s", results, scene)
+    refine_pose_file(scene, Path(results), Path(image_dir),
+                     from_query_list(queries, allow_distortion=allow_distortion), Path(output),
+                     config=config, limit=limit, gt_variant=gt_variant)
+    return Path(output)
+
+
+def cli(argv=None) -> int:
+    """The shell entry point; user errors end in one line on stderr and exit code 2."""
+    from .refine import RefineConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", type=Path, required=True)
+    ap.add_argument("--queries", type=Path, required=True, help="queries_with_intrinsics.txt")
+    ap.add_argument("--results", type=Path, required=True)
+    ap.add_argument("--image_dir", type=Path, required=True)
+    ap.add_argument("--output", type=Path, required=True)
+    ap.add_argument("--config", default="default")
+    ap.add_argument("--limit", type=int)
+    ap.add_argument("--allow_distortion", action="store_true")
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO)
+    try:
+        main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config), a.limit,
+             allow_distortion=a.allow_distortion)
+    except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
+        print(f"hloc step: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,33 @@
+"""HGSLocPlugin: the public refiner, one query (``refine``) or many (``refine_many``)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from .batch import as_queries, run_batch
+from .refine import Refiner, RefineResult
+
+
+class HGSLocPlugin(Refiner):
+    """Pose refiner over one 3DGS scene.
+
+    Example:
+        >>> refiner = HGSLocPlugin("point_cloud.ply")
+        >>> result = refiner.refine(image, camera, coarse_pose)
+        >>> result.pose, result.accepted
+
+    Convention: poses are world-to-camera (COLMAP cam_from_world), quaternions w, x, y, z.
+    """
+
+    def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining", workers: int = 0,
+                    ray_address: str | None = None) -> list[RefineResult]:
+        """Refine many queries in order; one failure is recorded in its result, never raised.
+
+        Args:
+            items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
+                or dicts with those keys.
+            workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
+                (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
+        """
+        return run_batch(self, as_queries(items), workers=workers, ray_address=ray_address, progress=progress,
+                         desc=desc)

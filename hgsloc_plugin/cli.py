@@ -7,6 +7,8 @@ import logging
 import sys
 from pathlib import Path
 
+from .refine.config import METRICS
+
 
 def _intrinsics(args):
     from .adapters import intrinsics as intr
@@ -32,6 +34,10 @@ def cmd_refine(args) -> int:
         overrides["metric"] = args.metric
     if args.white_background:
         overrides["background"] = (1.0, 1.0, 1.0)
+    if args.max_shift is not None:
+        overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
+    if args.max_rotation is not None:
+        overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
@@ -39,10 +45,45 @@ def cmd_refine(args) -> int:
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
                            workers=args.workers, ray_address=args.ray_address)
-    t = rep["totals"]
-    print(f"refined {t['accepted']} / {t['queries']} queries ({t['failed']} failed), {t['renders']} renders, "
-          f"{t['seconds']:.1f} s -> {args.out}")
+    print(summary_line(rep["totals"], args.out))
     return 0
+
+
+def summary_line(t: dict, out) -> str:
+    """One line: refined, kept (per reason), failed, median confidence, effort."""
+    kept = sum(t.get("rejected", {}).values())
+    why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
+    conf = t.get("median_confidence")
+    return (f"refined {t['accepted']} / {t['queries']} queries, kept the prior for {kept}"
+            + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
+            + (f"{conf:.2f}" if conf is not None else "-") + f"; {t['renders']} renders, {t['seconds']:.1f} s -> {out}")
+
+
+_LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
+_ANGLE_UNITS = {"": 1.0, "deg": 1.0, "rad": 57.29577951308232}
+
+
+def _with_unit(text: str, units: dict[str, float], flag: str) -> float:
+    import re
+
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-z]*)\s*", text)
+    if not m or m.group(2) not in units:
+        raise ValueError(f"{flag}: expected a positive number with an optional unit "
+                         f"({', '.join(u for u in units if u)}), got {text!r}")
+    v = float(m.group(1)) * units[m.group(2)]
+    if not v > 0:
+        raise ValueError(f"{flag}: must be > 0, got {text!r}")
+    return v
+
+
+def parse_length(text: str, flag: str = "--max-shift") -> float:
+    """'0.25m', '25cm', '0.25' -> 0.25 (scene units, taken as metres)."""
+    return _with_unit(text, _LENGTH_UNITS, flag)
+
+
+def parse_angle(text: str, flag: str = "--max-rotation") -> float:
+    """'5deg', '5', '0.1rad' -> degrees."""
+    return _with_unit(text, _ANGLE_UNITS, flag)
 
 
 def cmd_evaluate(args) -> int:
@@ -127,7 +168,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
     r.add_argument("--config", default="default", help="preset: default, fast, accurate, paper")
-    r.add_argument("--metric", choices=["sad", "psnr", "ssim", "ncc", "affine"])
+    r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
+    r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "
+                                       "(scene units; default: 8 coarsest steps)")
+    r.add_argument("--max-rotation", help="trust region: rotation from the prior, e.g. 5deg "
+                                          "(default: 8 coarsest steps)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=int, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

@@ -1,4 +1,4 @@
-"""Image-difference heuristics computed from the fused statistics of ``kernels/blend.py``."""
+"""Image-difference heuristics from the fused statistics of ``kernels/blend.py`` and ``kernels/window.py``."""
 
 from __future__ import annotations
 
@@ -7,6 +7,16 @@ import numpy as np
 from .kernels.layout import Stat
 
 FUSED_METRICS = ("sad", "ssd", "psnr", "ncc", "affine")
+WINDOW_METRICS = ("cs", "ssim")
+
+
+def cost_from_window(sums: np.ndarray) -> np.ndarray:
+    """Per-pose cost ``1 - mean`` of the windowed similarity (``kernels/window.py``), from [B, 2] (sum, pixels).
+
+    0 for identical local structure; a pose with no valid pixel costs 1 (as an unrelated image would).
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    return 1.0 - sums[:, 0] / np.maximum(sums[:, 1], 1.0)
 
 
 def cost_from_stats(stats: np.ndarray, metric: str, num_pixels: int) -> np.ndarray:
@@ -47,4 +57,4 @@ def cost_from_stats(stats: np.ndarray, metric: str, num_pixels: int) -> np.ndarr
         res = np.maximum(var_q - cov * cov / np.maximum(var_r, 1e-12), 0.0)
         rmse = np.sqrt(res.sum(axis=1) / (3.0 * n))
         return rmse * 3.0 * num_pixels
-    raise ValueError(f"unknown metric {metric!r}; choose from {FUSED_METRICS} or 'ssim'")
+    raise ValueError(f"unknown metric {metric!r}; choose from {FUSED_METRICS} or {WINDOW_METRICS}")

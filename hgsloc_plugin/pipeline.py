@@ -1,8 +1,8 @@
 """Refine a localizer's pose file end to end: read, refine every query, write the same dialect + a JSON report.
 
 This is the code path of ``hgsloc refine``, the HLoc step and ``hgsloc demo``. Outputs are written atomically
-and regularly, so an interrupted run leaves a valid file; a rerun resumes (queries in the report are skipped,
-no line is duplicated).
+and regularly, so an interrupted run leaves a valid file; a rerun resumes (queries refined or rejected in the
+report are skipped, failed ones are retried, no line is duplicated).
 """
 
 from __future__ import annotations
@@ -54,10 +54,26 @@ class _Run:
         q = self.report["queries"].values()
         self.report["totals"] = {
             "queries": len(self.report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
-            "failed": sum(1 for v in q if v.get("error")), "renders": sum(v.get("renders", 0) for v in q),
+            "failed": sum(1 for v in q if v.get("error")), "rejected": rejected_counts(q),
+            "median_confidence": median_confidence(q), "renders": sum(v.get("renders", 0) for v in q),
             "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
         }
         write_json(report_path(self.output), self.report)
+
+
+def rejected_counts(entries) -> dict[str, int]:
+    """Queries whose search pose was not returned, per reason (report entries)."""
+    out: dict[str, int] = {}
+    for v in entries:
+        if v.get("rejected") and not v.get("error"):
+            out[v["rejected"]] = out.get(v["rejected"], 0) + 1
+    return dict(sorted(out.items()))
+
+
+def median_confidence(entries) -> float | None:
+    """Median confidence of the accepted queries (None if none was accepted)."""
+    c = sorted(v["confidence"] for v in entries if v.get("accepted") and v.get("confidence") is not None)
+    return round(c[len(c) // 2], 4) if c else None
 
 
 def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose]]:
@@ -69,11 +85,14 @@ def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose
         old = json.loads(rep_path.read_text())
         prev = read_poses(output, pf.dialect)
         for name, q in old.get("queries", {}).items():
+            if q.get("error"):  # failed queries are retried (the user may have fixed the input)
+                continue
             if name in pf and name in prev:
                 done[name] = q
                 if prev[name] is not None:
                     refined[name] = prev[name]
-        logger.info("resuming: %d queries already done", len(done))
+        logger.info("resuming: %d queries already done, %d failed ones retried", len(done),
+                    sum(1 for q in old.get("queries", {}).values() if q.get("error")))
     return done, refined
 
 

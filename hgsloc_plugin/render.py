@@ -19,7 +19,7 @@ import taichi as ti
 
 from .backend import current_arch
 from .camera import Camera
-from .kernels import RasterConfig
+from .kernels import RasterConfig, window
 from .kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
 from .kernels.layout import Rec, Stat
 from .kernels.projection import projection_kernel
@@ -177,30 +177,74 @@ class Renderer:
         for s in range(0, len(poses), c):
             yield poses[s:s + c]
 
+    def _blend_images(self, camera: Camera, part: list[Pose], background, batch: int) -> dict:
+        """Geometry and image blending of up to one chunk of poses; the images stay on the device (in the
+        workspace's ``rgb``, ``alpha`` and ``dimg``). ``batch``: the workspace size (poses of the whole call,
+        capped at one chunk), so every chunk of a call shares one workspace."""
+        ws = self._workspace(camera, batch)
+        b = ws.bufs
+        if "rgb" not in b:
+            H, W = camera.height, camera.width
+            b["rgb"] = ti.ndarray(ti.f32, (ws.batch, H, W, 3))
+            b["alpha"] = ti.ndarray(ti.f32, (ws.batch, H, W))
+            b["dimg"] = ti.ndarray(ti.f32, (ws.batch, H, W))
+        self._geometry(camera, part, ws, background)
+        tx, ty = b["tiles"]
+        if self.blend_mode == "splat":
+            self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx, ty,
+                            len(part), b["rgb"], b["alpha"], b["dimg"])
+        else:
+            self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
+                            len(part), b["rgb"], b["alpha"], b["dimg"])
+        return b
+
     def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
         """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""
         rgbs, alphas, depths = [], [], []
         for part in self._chunks(poses):
-            ws = self._workspace(camera, min(len(poses), self.chunk))
-            b = ws.bufs
-            if "rgb" not in b:
-                H, W = camera.height, camera.width
-                b["rgb"] = ti.ndarray(ti.f32, (ws.batch, H, W, 3))
-                b["alpha"] = ti.ndarray(ti.f32, (ws.batch, H, W))
-                b["dimg"] = ti.ndarray(ti.f32, (ws.batch, H, W))
-            self._geometry(camera, part, ws, background)
-            tx, ty = b["tiles"]
-            if self.blend_mode == "splat":
-                self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx, ty,
-                                len(part), b["rgb"], b["alpha"], b["dimg"])
-            else:
-                self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
-                                len(part), b["rgb"], b["alpha"], b["dimg"])
+            b = self._blend_images(camera, part, background, min(len(poses), self.chunk))
             n = len(part)
             rgbs.append(b["rgb"].to_numpy()[:n])
             alphas.append(b["alpha"].to_numpy()[:n])
             depths.append(b["dimg"].to_numpy()[:n])
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
+
+    @staticmethod
+    def upload_window_query(image: np.ndarray) -> ti.Ndarray:
+        """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
+        ([H, W, 3, window.NQ]; ``image`` [H, W, 3] float in [0, 1])."""
+        q = Renderer.upload_image(image)
+        H, W = q.shape[:2]
+        out = ti.ndarray(ti.f32, (H, W, 3, window.NQ))
+        window.query_stats_kernel()(q, out)
+        return out
+
+    def window_cost(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
+                    mask_alpha: float = 0.0, luminance: bool = False) -> np.ndarray:
+        """Windowed structural similarity of each pose's rendering with the query: [B, 2] float64, the sum over
+        valid pixels of the per-pixel value (``cs``, or full SSIM when ``luminance``) and the valid pixel count.
+
+        Args:
+            qstats: from :meth:`upload_window_query`, at the camera's size.
+        """
+        if tuple(qstats.shape[:2]) != (camera.height, camera.width):
+            raise ValueError(f"query statistics are {tuple(qstats.shape[:2])}, camera needs "
+                             f"({camera.height}, {camera.width})")
+        out = []
+        for part in self._chunks(poses):
+            b = self._blend_images(camera, part, background, min(len(poses), self.chunk))
+            if "win_h" not in b:
+                B, H, W = b["alpha"].shape
+                b["win_h"] = ti.ndarray(ti.f32, (B, H, W, 3, 3))
+                b["win_rows"] = ti.ndarray(ti.f32, (B, H, 2))
+                b["win_out"] = ti.ndarray(ti.f64, (B, 2))
+            n = len(part)
+            window.horizontal_kernel()(b["rgb"], qstats, n, b["win_h"])
+            window.vertical_cost_kernel(bool(luminance))(b["win_h"], qstats, b["alpha"], float(mask_alpha), n,
+                                                         b["win_rows"])
+            window.rows_reduce_kernel()(b["win_rows"], n, b["win_out"])
+            out.append(b["win_out"].to_numpy()[:n])
+        return np.concatenate(out)
 
     @staticmethod
     def upload_image(image: np.ndarray) -> ti.Ndarray:

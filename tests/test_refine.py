@@ -195,7 +195,7 @@ def test_config_presets_and_validation():
         hp.RefineConfig().metric = "sad"  # frozen
 
 
-@pytest.mark.parametrize("metric", ["sad", "psnr", "ssim", "ncc", "affine"])
+@pytest.mark.parametrize("metric", ["cs", "sad", "psnr", "ssim", "ncc", "affine"])
 def test_every_heuristic_ranks_the_true_pose_first(room, metric):
     from hgsloc_plugin.demo.queries import degrade
     from hgsloc_plugin.refine.scorer import Scorer
@@ -203,7 +203,7 @@ def test_every_heuristic_ranks_the_true_pose_first(room, metric):
 
     gt = query_poses(1, seed=6)[0]
     img = hp.render(room, CAM, gt)
-    if metric in ("ncc", "affine", "ssim"):  # exposure-robust or structural: survive a photo-like change
+    if metric in ("ncc", "affine", "ssim", "cs"):  # exposure-robust or structural: survive a photo-like change
         img = degrade(img, np.random.default_rng(0), occluder=False)
     sc = Scorer(get_renderer(room), metric, (0, 0, 0), 0.0)
     sc.set_query(CAM, img)

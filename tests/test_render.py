@@ -9,7 +9,7 @@ import hgsloc_plugin as hp
 from hgsloc_plugin.kernels import RasterConfig
 
 from .conftest import random_scene
-from .reference.render_torch import bin_tiles, project, render_reference
+from .reference.render_torch import bin_tiles, project, render_reference, window_cost
 
 
 def psnr(a, b):
@@ -170,3 +170,42 @@ def test_bad_arguments_raise():
         hp.render_cost(scene, cam, hp.Pose.identity(), np.zeros((8, 8, 3)))
     with pytest.raises(ValueError):
         hp.render_cost(scene, cam, hp.Pose.identity(), np.zeros((16, 16, 3)), metric="nope")
+
+
+@pytest.mark.parametrize("luminance", [False, True])
+@pytest.mark.parametrize("mask_alpha", [0.0, 0.5])
+def test_window_cost_kernel_matches_reference(luminance, mask_alpha):
+    """The fused windowed SSIM / cs kernel equals the float64 2D-convolution reference on each pose."""
+    from hgsloc_plugin.render import get_renderer
+
+    scene = random_scene(n=400, sh_degree=1, seed=11)
+    cam = hp.Camera(72, 50, 60.0, 60.0, 36.0, 25.0)
+    poses = [hp.Pose.identity().perturbed_in_camera([0, 0.01 * k, 0], [0.01 * k, 0, 0]) for k in range(4)]
+    bg = (0.1, 0.2, 0.3)
+    rgb, alpha, _ = hp.render_full(scene, cam, poses, background=bg)
+    noise = np.random.default_rng(0).normal(0, 0.02, rgb[0].shape)
+    query = np.clip(rgb[0] * 0.8 + 0.1 + noise, 0, 1).astype(np.float32)  # a gain/offset change and noise
+    r = get_renderer(scene)
+    got = r.window_cost(cam, poses, r.upload_window_query(query), bg, mask_alpha, luminance)
+    for k in range(4):
+        s, n = window_cost(rgb[k], alpha[k], query, mask_alpha, luminance)
+        assert got[k, 1] == n, f"pose {k}: valid pixels"
+        assert got[k, 0] == pytest.approx(s, rel=1e-5, abs=1e-3), f"pose {k}"  # float32 passes vs float64
+    assert len(set(np.round(got[:, 0], 3))) == 4, "different poses must give different sums"
+
+
+def test_window_reference_agrees_with_kornia_ssim_inside_the_border():
+    """The reference's SSIM equals kornia's away from the image border (they pad differently)."""
+    import kornia
+    import torch
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(size=(40, 50, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1).astype(np.float32)
+    ta, tb = (torch.from_numpy(x).permute(2, 0, 1)[None] for x in (a, b))
+    kmap = kornia.metrics.ssim(ta, tb, window_size=11).mean(1)[0].double()  # [H, W]
+    inner = np.zeros((40, 50), np.float32)
+    inner[5:-5, 5:-5] = 1.0
+    s, n = window_cost(a, inner, b, mask_alpha=0.5, luminance=True)
+    assert n == 30 * 40
+    assert s / n == pytest.approx(float(kmap[5:-5, 5:-5].mean()), abs=1e-5)

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
-METRICS = ("sad", "psnr", "ssim", "ncc", "affine")
+METRICS = ("cs", "ssim", "sad", "psnr", "ncc", "affine")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -13,9 +14,11 @@ class RefineConfig:
     """Settings of :class:`~hgsloc_plugin.HGSLocPlugin`.
 
     Attributes:
-        metric: heuristic h: "sad" (paper's L1 sum), "psnr" (100 - PSNR), "ssim" (1 - SSIM via kornia),
-            "ncc" (1 - zero-mean NCC) or "affine" (L1-scaled RMS residual after a per-channel gain/offset fit;
-            robust to exposure changes).
+        metric: heuristic h: "cs" (default; 1 - mean of SSIM's contrast-structure term over 11x11 Gaussian
+            windows: compares local structure, so it holds on real photographs against imperfect maps and under
+            exposure changes), "ssim" (1 - SSIM), "sad" (paper's L1 sum), "psnr" (100 - PSNR), "ncc"
+            (1 - zero-mean NCC) or "affine" (L1-scaled RMS residual after a per-channel gain/offset fit).
+            All run in the kernels (``kernels/blend.py``, ``kernels/window.py``).
         neighbourhood: "lattice" (12 moves: +-dr about each camera axis, +-dt along each; proper rotations)
             or "paper" (14 moves: +-d on each raw q, t component; quaternion normalised before rendering).
         levels: explicit (rotation step in degrees, translation step in scene units) per level, coarse to fine;
@@ -31,15 +34,21 @@ class RefineConfig:
         score_max_side: longer image side at which the fine levels score; the first ``coarse_levels``
             levels (image pyramid) use ``coarse_scale`` times that, but never fewer than ``coarse_min_side``
             pixels. Measured: reducing more than the first two levels costs accuracy and time.
-        max_translation / max_rotation_deg: trust region around the coarse pose (None = automatic: half the
-            median scene depth seen from the coarse pose).
+        max_shift / max_rotation_deg: trust region around the coarse pose: camera-centre shift in scene units
+            and rotation in degrees. None = ``trust_steps`` times the coarsest level's step (the expected error
+            of a coarse pose is a few coarse steps; with the default levels 8 x 4 px of image motion, e.g. about
+            23 % of the median depth and 13 deg at 160 px and a 60 deg field of view).
+        trust_steps: multiple of the coarsest step used for an automatic trust region.
+        acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
+            of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
+            coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
         mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
         background: RGB behind the Gaussians (the colour the map was trained with).
         resize_query: resize a query whose size differs from the camera's instead of raising.
         paper_step_q / paper_step_t: raw-component steps of the "paper" neighbourhood.
     """
 
-    metric: str = "affine"
+    metric: str = "cs"
     neighbourhood: str = "lattice"
     levels: tuple[tuple[float, float], ...] = ()
     level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
@@ -50,12 +59,14 @@ class RefineConfig:
     pattern_moves: bool = False
     heuristic_weight: float = 1.0
     depth_cost: float = 0.0
-    score_max_side: int = 160
+    score_max_side: int = 200
     coarse_scale: float = 0.5
     coarse_levels: int = 2
     coarse_min_side: int = 80
-    max_translation: float | None = None
-    max_rotation_deg: float = 10.0
+    max_shift: float | None = None
+    max_rotation_deg: float | None = None
+    trust_steps: float = 8.0
+    acceptance: str = "trust"
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False
@@ -65,6 +76,14 @@ class RefineConfig:
     def __post_init__(self) -> None:
         if self.metric not in METRICS:
             raise ValueError(f"metric must be one of {METRICS}, got {self.metric!r}")
+        if self.acceptance not in ("trust", "cost"):
+            raise ValueError(f"acceptance must be 'trust' or 'cost', got {self.acceptance!r}")
+        for name in ("max_shift", "max_rotation_deg"):
+            v = getattr(self, name)
+            if v is not None and not (v > 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a positive number or None, got {v!r}")
+        if not self.trust_steps > 0:
+            raise ValueError(f"trust_steps must be > 0, got {self.trust_steps}")
         if self.neighbourhood not in ("lattice", "paper"):
             raise ValueError(f"neighbourhood must be 'lattice' or 'paper', got {self.neighbourhood!r}")
         if self.max_expansions < 0 or self.max_expansions_per_level < 0 or self.patience < 0:
@@ -105,5 +124,5 @@ PRESETS: dict[str, RefineConfig] = {
     # L1 cost, no early stop.
     "paper": RefineConfig(metric="sad", neighbourhood="paper", max_expansions_per_level=399, max_expansions=399,
                           patience=0, heuristic_weight=1.0, depth_cost=1.0, coarse_scale=1.0,
-                          max_translation=0.5, max_rotation_deg=5.0),
+                          max_shift=0.5, max_rotation_deg=5.0, acceptance="cost"),
 }

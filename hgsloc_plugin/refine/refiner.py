@@ -19,6 +19,7 @@ from ..scene import GaussianScene
 from .config import RefineConfig
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
+from .trust import Assessment, assess
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -45,7 +46,12 @@ class RefineResult:
         pose: refined world-to-camera pose (the coarse pose when ``accepted`` is False).
         initial_pose: the coarse pose given.
         cost_initial / cost_final: heuristic at the final scoring resolution, coarse vs returned pose.
-        accepted: a pose with a lower cost than the coarse pose was found.
+        accepted: the search's pose passed the acceptance rule (``RefineConfig.acceptance``) and is returned.
+        confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
+        rejected: why the search's pose was not returned ("insignificant", "flat valley", "trust-region edge",
+            "level inconsistency", "no improvement"), None when accepted or failed.
+        search_pose / search_cost: the search's best pose and its cost, returned or not.
+        assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         expansions / renders: search effort; levels: per-level details; seconds: wall time.
         history: best cost after each expansion (costs of different levels may use different resolutions).
         error: set when the query failed (then ``pose`` is the coarse pose).
@@ -56,6 +62,11 @@ class RefineResult:
     cost_initial: float = math.nan
     cost_final: float = math.nan
     accepted: bool = False
+    confidence: float = 0.0
+    rejected: str | None = None
+    search_pose: Pose | None = None
+    search_cost: float = math.nan
+    assessment: Assessment | None = None
     expansions: int = 0
     renders: int = 0
     levels: list[LevelStats] = field(default_factory=list)
@@ -72,11 +83,15 @@ class RefineResult:
 
     def to_dict(self) -> dict:
         return {
-            "name": self.name, "accepted": self.accepted, "cost_initial": self.cost_initial,
+            "name": self.name, "accepted": self.accepted, "confidence": round(self.confidence, 4),
+            "rejected": self.rejected, "cost_initial": self.cost_initial,
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
             "seconds": round(self.seconds, 4), "error": self.error,
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
+            "assessment": self.assessment.to_dict() if self.assessment else None,
+            "search_qvec": self.search_pose.qvec.tolist() if self.search_pose is not None else None,
+            "search_tvec": self.search_pose.tvec.tolist() if self.search_pose is not None else None,
         }
 
 
@@ -101,6 +116,7 @@ class _Plan:
     levels: list[tuple[float, float]]
     depth: float
     max_t: float
+    max_r: float
 
 
 class Refiner:
@@ -138,8 +154,13 @@ class Refiner:
         else:
             f = 0.5 * (cam_final.fx + cam_final.fy)
             levels = [(math.degrees(px / f), px * depth / f) for px in cfg.level_pixels]
-        max_t = cfg.max_translation if cfg.max_translation is not None else 0.5 * depth
-        return _Plan(cam_final, cam_coarse, levels, depth, max_t)
+        if cfg.neighbourhood == "paper":  # raw-component steps: no image-motion scale
+            auto_t, auto_r = 0.5 * depth, 10.0
+        else:
+            auto_t, auto_r = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
+        max_t = cfg.max_shift if cfg.max_shift is not None else auto_t
+        max_r = cfg.max_rotation_deg if cfg.max_rotation_deg is not None else auto_r
+        return _Plan(cam_final, cam_coarse, levels, depth, max_t, max_r)
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None) -> RefineResult:
         """Refine one query.
@@ -150,7 +171,8 @@ class Refiner:
             coarse_pose: world-to-camera prior.
 
         Returns:
-            A :class:`RefineResult`; its pose never has a higher cost than the coarse pose.
+            A :class:`RefineResult`; its pose is the search's only when that passes the acceptance rule
+            (never a higher cost than the coarse pose; see ``refine/trust.py``), else the coarse pose.
         """
         t0 = time.perf_counter()
         cfg = self.config
@@ -164,11 +186,23 @@ class Refiner:
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)
         scorer.set_query(plan.cam_final, img)
         result.cost_initial = float(scorer([coarse_pose])[0])
-        best_pose, best_cost = self._search_levels(plan, scorer, img, coarse_pose, result)
-        if best_cost < result.cost_initial:
+        best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
+        result.search_pose, result.search_cost = best_pose, best_cost
+        if cfg.acceptance == "trust" and cfg.neighbourhood == "lattice":
+            result.assessment = self._assess(plan, scorer, coarse_pose, after_coarse, best_pose, best_cost,
+                                             result.cost_initial)
+            result.rejected = result.assessment.rejected
+            result.confidence = result.assessment.confidence
+        elif not best_cost < result.cost_initial:
+            result.rejected = "no improvement"
+        if result.rejected is None:
             result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
+            if result.assessment is None:  # cost-only acceptance measures nothing to be confident about
+                result.confidence = math.nan
         else:
             result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
+            logger.debug("query %s: search pose rejected (%s): %s", name, result.rejected,
+                         result.assessment.to_dict() if result.assessment else {})
         result.renders = scorer.renders
         result.seconds = time.perf_counter() - t0
         return result
@@ -183,8 +217,27 @@ class Refiner:
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,
                                        time.perf_counter() - t0)
 
-    def _trust_region(self, coarse: Pose, max_t: float):
-        c0, R0, max_r = coarse.centre(), coarse.R, self.config.max_rotation_deg
+    @staticmethod
+    def _travel(a: Pose, b: Pose, max_t: float, max_r: float) -> float:
+        """The larger of centre shift / max_t and rotation / max_r between two poses."""
+        return max(float(np.linalg.norm(a.centre() - b.centre())) / max_t, rotation_angle_deg(a.R, b.R) / max_r)
+
+    def _assess(self, plan: _Plan, scorer: Scorer, coarse: Pose, after_coarse: Pose, best: Pose, best_cost: float,
+                cost_initial: float) -> Assessment:
+        """Score the 12 one-pixel moves around ``best`` (final resolution) and apply ``trust.assess``."""
+        cam = plan.cam_final
+        f = 0.5 * (cam.fx + cam.fy)
+        space = LatticeSpace(best, 1.0 / f, plan.depth / f, plan.depth if self.config.pivot else 0.0)
+        moves = space.neighbours((0,) * 6)
+        rises = scorer([space.pose(k) for k in moves]) - best_cost
+        travel = self._travel(coarse, best, plan.max_t, plan.max_r)
+        step_r, step_t = plan.levels[0]
+        level_shift = max(float(np.linalg.norm(after_coarse.centre() - best.centre())) / max(step_t, 1e-12),
+                          rotation_angle_deg(after_coarse.R, best.R) / max(step_r, 1e-12))
+        return assess(cost_initial, best_cost, rises, travel, level_shift)
+
+    def _trust_region(self, coarse: Pose, max_t: float, max_r: float):
+        c0, R0 = coarse.centre(), coarse.R
 
         def allowed(T: Pose) -> bool:
             if np.linalg.norm(T.centre() - c0) > max_t:
@@ -195,15 +248,18 @@ class Refiner:
 
     def _search_levels(self, plan: _Plan, scorer: Scorer, img: np.ndarray, coarse: Pose,
                        result: RefineResult) -> tuple[Pose, float]:
-        """Run the step levels coarse to fine; returns the best pose and its cost at the final resolution."""
+        """Run the step levels coarse to fine; returns the best pose, its cost at the final resolution and the best
+        pose after the coarse (pyramid) levels."""
         cfg = self.config
-        allowed = self._trust_region(coarse, plan.max_t)
+        allowed = self._trust_region(coarse, plan.max_t, plan.max_r)
         best_pose, best_cost, best_cam = coarse, result.cost_initial, plan.cam_final
+        after_coarse = coarse
         remaining = cfg.max_expansions
         for li, (s_rot, s_t) in enumerate(plan.levels):
             if remaining <= 0:
                 break
-            cam_l = plan.cam_coarse if (li < cfg.coarse_levels and li < len(plan.levels) - 1) else plan.cam_final
+            is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
+            cam_l = plan.cam_coarse if is_coarse else plan.cam_final
             if cam_l != best_cam:
                 scorer.set_query(cam_l, img)
                 best_cost = float(scorer([best_pose])[0])
@@ -221,7 +277,9 @@ class Refiner:
             result.history.extend(lr.history)
             result.levels.append(LevelStats(s_rot, s_t, cam_l.width, cam_l.height, lr.expansions, lr.renders,
                                             lr.best_cost, lr.stopped))
+            if is_coarse:
+                after_coarse = best_pose
         if best_cam != plan.cam_final:
             scorer.set_query(plan.cam_final, img)
             best_cost = float(scorer([best_pose])[0])
-        return best_pose, best_cost
+        return best_pose, best_cost, after_coarse

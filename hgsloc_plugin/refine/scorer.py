@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from ..camera import Camera
-from ..costs import cost_from_stats
+from ..costs import WINDOW_METRICS, cost_from_stats, cost_from_window
 from ..image import resize_image
 from ..pose import Pose
 from ..render import Renderer
@@ -15,8 +14,8 @@ from ..render import Renderer
 class Scorer:
     """Scores batches of poses against one query image at one resolution; owns that image.
 
-    Fused metrics (sad, psnr, ncc, affine) run in the blending kernel against the query uploaded once per
-    resolution; "ssim" renders images and uses kornia.
+    Pixel metrics (sad, psnr, ncc, affine) run in the blending kernel against the query uploaded once per
+    resolution; window metrics (cs, ssim) in a follow-up kernel on the rendered images, which stay on the device.
     """
 
     def __init__(self, renderer: Renderer, metric: str, background, mask_alpha: float):
@@ -33,8 +32,8 @@ class Scorer:
         self.camera = camera
         self._cache = {}
         self.query = resize_image(image_full, camera.width, camera.height)
-        if self.metric == "ssim":
-            self._q = torch.from_numpy(self.query).permute(2, 0, 1)[None]
+        if self.metric in WINDOW_METRICS:
+            self._target = self.renderer.upload_window_query(self.query)
         else:
             self._target = self.renderer.upload_image(self.query)
 
@@ -54,16 +53,9 @@ class Scorer:
             return np.zeros(0)
         self.renders += len(poses)
         cam = self.camera
-        if self.metric == "ssim":
-            import kornia
-
-            rgb, alpha, _ = self.renderer.render_full(cam, poses, self.background)
-            r = torch.from_numpy(rgb).permute(0, 3, 1, 2)
-            q = self._q.expand(len(poses), -1, -1, -1)
-            s = kornia.metrics.ssim(r, q, window_size=11)  # [B, 3, H, W]
-            if self.mask_alpha > 0:
-                m = torch.from_numpy(alpha >= self.mask_alpha)[:, None].float()
-                return (1.0 - (s * m).sum((1, 2, 3)) / (3 * m.sum((1, 2, 3)).clamp(min=1))).double().numpy()
-            return (1.0 - s.mean((1, 2, 3))).double().numpy()
+        if self.metric in WINDOW_METRICS:
+            sums = self.renderer.window_cost(cam, poses, self._target, self.background, self.mask_alpha,
+                                             luminance=self.metric == "ssim")
+            return cost_from_window(sums)
         stats = self.renderer.cost_stats(cam, poses, self._target, self.background, self.mask_alpha)
         return cost_from_stats(stats, self.metric, cam.width * cam.height)

@@ -115,3 +115,35 @@ def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0)):
     proj = project(scene, camera, pose.matrix())
     lists = bin_tiles(proj, camera)
     return blend(proj, lists, camera, background)
+
+
+def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alpha: float = 0.0,
+                luminance: bool = False, sigma: float = 1.5, radius: int = 5) -> tuple[float, float]:
+    """Twin of kernels/window.py: (sum over valid pixels of the channel-mean SSIM or cs, valid pixel count).
+
+    Written as a 2D float64 convolution with an explicit (2 radius + 1)^2 Gaussian kernel and replicate padding
+    (the kernel uses two separable float32 passes with clamped coordinates).
+    """
+    import torch.nn.functional as F
+
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    k2 = (g[:, None] * g[None, :])[None, None].repeat(3, 1, 1, 1)
+    r = torch.from_numpy(np.asarray(rgb, np.float64)).permute(2, 0, 1)[None]
+    q = torch.from_numpy(np.asarray(query, np.float64)).permute(2, 0, 1)[None]
+
+    def filt(t):
+        return F.conv2d(F.pad(t, (radius,) * 4, mode="replicate"), k2, groups=3)
+
+    mr, mq = filt(r), filt(q)
+    s_rr = (filt(r * r) - mr * mr).clamp(min=0)
+    s_qq = (filt(q * q) - mq * mq).clamp(min=0)
+    s_rq = filt(r * q) - mr * mq
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    v = (2 * s_rq + c2) / (s_rr + s_qq + c2)
+    if luminance:
+        v = v * (2 * mr * mq + c1) / (mr * mr + mq * mq + c1)
+    v = v.mean(1)[0]
+    valid = torch.from_numpy(np.asarray(alpha) >= mask_alpha)
+    return float(v[valid].sum()), float(valid.sum())

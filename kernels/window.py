@@ -1,0 +1,152 @@
+"""Windowed structural comparison (SSIM and its contrast-structure term), a fused follow-up to blending.
+
+The blend kernel leaves the rendered colour [B, H, W, 3] and alpha [B, H, W] on the device; these kernels read
+them there and return one (sum, count) pair per pose, so no image leaves the device.
+
+Per pixel p and channel c, with Gaussian window weights w (sigma ``SIGMA``, radius ``RADIUS``, normalised,
+separable; coordinates outside the image are clamped to the border, i.e. replicate padding):
+
+    mu_r = sum w r,  mu_q = sum w q
+    s_rr = sum w r^2 - mu_r^2,  s_qq = sum w q^2 - mu_q^2,  s_rq = sum w r q - mu_r mu_q
+    cs   = (2 s_rq + C2) / (s_rr + s_qq + C2)
+    ssim = cs * (2 mu_r mu_q + C1) / (mu_r^2 + mu_q^2 + C1)
+
+The pixel's value is the mean over the three channels; a pixel counts when its rendered alpha >= ``mask_alpha``.
+``cs`` compares local structure only (invariant to a brightness offset and robust to gain), which is what
+survives between a real photograph and an imperfect map. Sums run in a fixed order (one task per row, then one
+per pose in float64): deterministic. Reference twin: ``tests/reference/render_torch.py::window_cost``.
+"""
+
+import functools
+import math
+
+import taichi as ti
+
+SIGMA = 1.5
+RADIUS = 5
+C1 = 0.01 ** 2
+C2 = 0.03 ** 2
+NQ = 3  # per channel query statistics: mu_q, s_qq, q
+
+
+def window_weights() -> list[float]:
+    """Normalised 1D Gaussian weights, length 2 * RADIUS + 1."""
+    w = [math.exp(-0.5 * (k / SIGMA) ** 2) for k in range(-RADIUS, RADIUS + 1)]
+    s = sum(w)
+    return [x / s for x in w]
+
+
+_W = window_weights()
+
+
+@functools.cache
+def query_stats_kernel():
+    """Query statistics [H, W, 3, NQ]: windowed mean, windowed variance and the pixel itself, per channel."""
+
+    @ti.kernel
+    def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), out: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+        H = q.shape[0]
+        W = q.shape[1]
+        for y, x in ti.ndrange(H, W):
+            for c in ti.static(range(3)):
+                m = 0.0
+                m2 = 0.0
+                for i in ti.static(range(2 * RADIUS + 1)):
+                    yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
+                    for j in ti.static(range(2 * RADIUS + 1)):
+                        xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
+                        v = q[yy, xx, c]
+                        w = ti.static(_W[i] * _W[j])
+                        m += w * v
+                        m2 += w * v * v
+                out[y, x, c, 0] = m
+                out[y, x, c, 1] = ti.max(m2 - m * m, 0.0)
+                out[y, x, c, 2] = q[y, x, c]
+
+    return query_stats
+
+
+@functools.cache
+def horizontal_kernel():
+    """First (horizontal) window pass over the rendering: [B, H, W, 3, 3] = filtered r, r^2, r q per channel."""
+
+    @ti.kernel
+    def horizontal(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                   num_poses: ti.i32, out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
+        H = rgb.shape[1]
+        W = rgb.shape[2]
+        for b, y, x in ti.ndrange(num_poses, H, W):
+            for c in ti.static(range(3)):
+                s1 = 0.0
+                s2 = 0.0
+                s3 = 0.0
+                for j in ti.static(range(2 * RADIUS + 1)):
+                    xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
+                    r = rgb[b, y, xx, c]
+                    w = ti.static(_W[j])
+                    s1 += w * r
+                    s2 += w * r * r
+                    s3 += w * r * qstats[y, xx, c, 2]
+                out[b, y, x, c, 0] = s1
+                out[b, y, x, c, 1] = s2
+                out[b, y, x, c, 2] = s3
+
+    return horizontal
+
+
+@functools.cache
+def vertical_cost_kernel(with_luminance: bool):
+    """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 2] = (sum of values, pixels)."""
+
+    @ti.kernel
+    def vertical(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                 alpha: ti.types.ndarray(dtype=ti.f32, ndim=3), mask_alpha: ti.f32, num_poses: ti.i32,
+                 rows: ti.types.ndarray(dtype=ti.f32, ndim=3)):
+        H = hbuf.shape[1]
+        W = hbuf.shape[2]
+        for b, y in ti.ndrange(num_poses, H):
+            tot = 0.0
+            cnt = 0.0
+            for x in range(W):
+                if alpha[b, y, x] >= mask_alpha:
+                    v = 0.0
+                    for c in ti.static(range(3)):
+                        m = 0.0
+                        m2 = 0.0
+                        mrq = 0.0
+                        for i in ti.static(range(2 * RADIUS + 1)):
+                            yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
+                            w = ti.static(_W[i])
+                            m += w * hbuf[b, yy, x, c, 0]
+                            m2 += w * hbuf[b, yy, x, c, 1]
+                            mrq += w * hbuf[b, yy, x, c, 2]
+                        mq = qstats[y, x, c, 0]
+                        s_rr = ti.max(m2 - m * m, 0.0)
+                        s_rq = mrq - m * mq
+                        cs = (2.0 * s_rq + C2) / (s_rr + qstats[y, x, c, 1] + C2)
+                        if ti.static(with_luminance):
+                            cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
+                        v += cs
+                    tot += v / 3.0
+                    cnt += 1.0
+            rows[b, y, 0] = tot
+            rows[b, y, 1] = cnt
+
+    return vertical
+
+
+@functools.cache
+def rows_reduce_kernel():
+    """Per-pose totals [B, 2] (float64) of the row sums, in row order."""
+
+    @ti.kernel
+    def reduce_rows(rows: ti.types.ndarray(dtype=ti.f32, ndim=3), num_poses: ti.i32,
+                    out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+        H = rows.shape[1]
+        for b, k in ti.ndrange(num_poses, 2):
+            tot = ti.f64(0.0)
+            for y in range(H):
+                tot += ti.cast(rows[b, y, k], ti.f64)
+            out[b, k] = tot
+
+    return reduce_rows

@@ -1,0 +1,180 @@
+"""Results a localizer can trust: the acceptance rule, confidence, trust region, resume of failed queries,
+stdout purity of the CLI, and the real-photo behaviour the rule exists for (``../shared/data/snow``)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.cli import parse_angle, parse_length
+from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess
+
+from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
+
+SNOW = Path(__file__).resolve().parents[2] / "shared" / "data" / "snow"
+GOOD_RISES = np.full(12, 0.01)
+
+
+@pytest.mark.parametrize("initial, best, rises, travel, level_shift, reason", [
+    (1.0, 0.9, GOOD_RISES, 0.1, 0.5, None),
+    (1.0, 1.0, GOOD_RISES, 0.1, 0.5, "no improvement"),
+    (1.0, 1.001, GOOD_RISES, 0.1, 0.5, "no improvement"),
+    (1.0, 1.0 - 0.5 * 0.01, GOOD_RISES, 0.1, 0.5, "insignificant"),  # half a one-pixel rise
+    (1.0, 0.9, np.r_[np.full(11, 0.01), -0.001], 0.1, 0.5, "flat valley"),  # a 1-px move is downhill
+    (1.0, 0.9, np.r_[np.full(11, 0.01), 1e-5], 0.1, 0.5, "flat valley"),  # one axis unconstrained
+    (1.0, 0.9, GOOD_RISES, 0.95, 0.5, "trust-region edge"),
+    (1.0, 0.9, GOOD_RISES, 0.1, 7.0, "level inconsistency"),
+])
+def test_acceptance_rule_reasons(initial, best, rises, travel, level_shift, reason):
+    a = assess(initial, best, rises, travel, level_shift)
+    assert a.rejected == reason
+    assert (a.confidence > 0) == (reason is None)
+    assert 0.0 <= a.confidence <= 1.0
+
+
+def test_confidence_grows_with_significance_and_sharpness():
+    lo = assess(1.0, 1.0 - 1.5 * 0.01, GOOD_RISES, 0.1, 0.5)
+    hi = assess(1.0, 1.0 - 10 * 0.01, GOOD_RISES, 0.1, 0.5)
+    blunt = assess(1.0, 1.0 - 10 * 0.01, np.r_[np.full(11, 0.01), 0.0003], 0.1, 0.5)
+    assert lo.significance == pytest.approx(1.5) and lo.significance >= MIN_SIGNIFICANCE
+    assert 0 < lo.confidence < hi.confidence
+    assert blunt.rejected is None and blunt.confidence < hi.confidence
+
+
+def test_units_of_the_trust_region_flags():
+    assert parse_length("0.25m") == parse_length("25cm") == parse_length("250mm") == 0.25
+    assert parse_angle("5deg") == parse_angle("5") == 5.0
+    assert parse_angle("0.1rad") == pytest.approx(np.degrees(0.1))
+    for bad in ("-1m", "0", "5 parsecs", ""):
+        with pytest.raises(ValueError, match="--max-shift"):
+            parse_length(bad)
+    with pytest.raises(ValueError, match="max_shift"):
+        hp.RefineConfig(max_shift=-1.0)
+    with pytest.raises(ValueError, match="acceptance"):
+        hp.RefineConfig(acceptance="maybe")
+
+
+def test_user_trust_region_bounds_the_search():
+    """With max_shift / max_rotation_deg set, the search's pose stays inside them although the optimum is far."""
+    from hgsloc_plugin.demo.queries import query_poses
+    from hgsloc_plugin.demo.scene import make_room_scene
+
+    room = make_room_scene(density=0.35)
+    cam = hp.Camera.from_focal(160, 120, 110.0)
+    gt = query_poses(1, seed=4)[0]
+    img = hp.render(room, cam, gt)
+    coarse = se3_noise(gt, 2.0, 0.08, np.random.default_rng(2))
+    cfg = hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5)
+    r = hp.HGSLocPlugin(room, cfg).refine(img, cam, coarse)
+    shift = np.linalg.norm(r.search_pose.centre() - coarse.centre())
+    _, dr = r.search_pose.errors_to(coarse)
+    assert shift <= 0.02 + 1e-9 and dr <= 0.5 + 1e-9
+    assert shift > 0.01, "the search moved towards the optimum up to the region"
+
+
+def _snow():
+    import json as _json
+
+    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.refine.refiner import median_depth
+
+    cj = _json.loads((SNOW / "camera.json").read_text())
+    cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
+    scene = hp.GaussianScene.from_ply(SNOW / "snow.ply")
+    out = []
+    for line in (SNOW / "gt.txt").read_text().splitlines():
+        t = line.split()
+        g = hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]])
+        out.append((t[0], g, load_image(SNOW / "queries" / t[0]), median_depth(scene, cam, g)))
+    return scene, cam, out
+
+
+@pytest.mark.skipif(not (SNOW / "snow.ply").exists(), reason="../shared/data/snow not present")
+def test_real_photos_true_pose_is_kept_and_priors_improve():
+    """Real photos, imperfect map: started at the true pose, the search drifts (the map's cost minimum is off
+    the truth) but the rule keeps the true pose; from a 2 % depth / 1 deg prior the returned pose is accepted and
+    closer to the truth than the prior."""
+    scene, cam, queries = _snow()
+    refiner = hp.HGSLocPlugin(scene)
+    for name, gt, img, depth in [queries[2], queries[5]]:
+        r = refiner.refine(img, cam, gt, name=name)
+        assert r.search_pose != gt, "the search moved away from the truth (what the rule must catch)"
+        assert r.rejected == "insignificant" and r.pose == gt and r.confidence == 0.0
+        coarse = se3_noise(gt, 1.0, 0.02 * depth, np.random.default_rng(7))
+        r2 = refiner.refine(img, cam, coarse, name=name)
+        assert r2.accepted and r2.rejected is None and r2.confidence > 0.2
+        t0, r0 = coarse.errors_to(gt)
+        t1, r1 = r2.pose.errors_to(gt)
+        assert t1 < 0.5 * t0 and r1 < 0.5 * r0, (name, t0, r0, t1, r1)
+
+
+def _run_cli(args):
+    return subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli"] + args, capture_output=True, text=True)
+
+
+def test_cli_json_stdout_is_pure_and_strict(tiny_case, tmp_path):  # noqa: F811
+    d = tiny_case
+    gt = d / "gt.txt"
+    bad = tmp_path / "est.txt"
+    lines = gt.read_text().splitlines()
+    name0 = lines[0].split()[0]
+    lines[0] = f"{name0} nan 0 0 0 0 0 0"
+    bad.write_text("\n".join(lines) + "\n")
+    p = _run_cli(["evaluate", "--poses", str(bad), "--gt", str(gt), "--json"])
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(p.stdout, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert rep["n"] == 3
+    assert "Taichi" not in p.stdout and f"{bad.name}:1" in p.stderr
+
+
+def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path):  # noqa: F811
+    d = tiny_case
+    p = _run_cli(["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images",
+                  str(d / "images"), "--focal", "90", "--out", str(tmp_path / "o.txt"), "--config", "fast",
+                  "--quiet", "--max-shift", "10cm", "--max-rotation", "3deg"])
+    assert p.returncode == 0, p.stderr
+    out = p.stdout.strip().splitlines()
+    assert len(out) == 1 and out[0].startswith("refined ") and "median confidence" in out[0], p.stdout
+    rep = json.loads((tmp_path / "o.txt.json").read_text())
+    assert rep["config"]["max_shift"] == pytest.approx(0.1) and rep["config"]["max_rotation_deg"] == 3.0
+    for q in rep["queries"].values():
+        assert set(q) >= {"accepted", "confidence", "rejected", "assessment"}
+        assert q["accepted"] == (q["rejected"] is None)
+    p = _run_cli(["render", "--scene", str(d / "scene.ply"), "--pose", "1 0 0 0 0 0 0", "--camera",
+                  "64 48 50 50 32 24", "--out", str(tmp_path / "x.png")])
+    assert p.returncode == 0 and p.stdout.strip().splitlines() == [f"wrote {tmp_path / 'x.png'} (64x48)"]
+
+
+def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
+    """A query that failed (its image missing) is retried by the next run once the image is there."""
+    import shutil
+
+    d = tiny_case
+    imgs = tmp_path / "images"
+    shutil.copytree(d / "images", imgs)
+    victim = imgs / "seq-01" / "frame-000001.color.png"
+    saved = victim.read_bytes()
+    victim.unlink()
+    out = tmp_path / "o.txt"
+    args = ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(imgs),
+            "--focal", "90", "--out", str(out), "--config", "fast", "--quiet"]
+    assert _run_cli(args).returncode == 0
+    rep = json.loads((tmp_path / "o.txt.json").read_text())
+    failed = [n for n, q in rep["queries"].items() if q.get("error")]
+    assert failed == ["seq-01-frame-000001.color.png"]
+    assert rep["totals"]["failed"] == 1
+    victim.write_bytes(saved)
+    assert _run_cli(args).returncode == 0
+    rep2 = json.loads((tmp_path / "o.txt.json").read_text())
+    assert rep2["totals"]["failed"] == 0 and not rep2["queries"][failed[0]].get("error")
+    assert rep2["queries"][failed[0]]["renders"] > 0
+    for n in rep["queries"]:
+        if n not in failed:
+            assert rep2["queries"][n] == rep["queries"][n], "done queries are not redone"

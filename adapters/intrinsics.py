@@ -79,8 +79,17 @@ def _lookup(table: dict[str, Camera], source, what: str) -> IntrinsicsFn:
     return get
 
 
+def from_cameras_json(path) -> IntrinsicsFn:
+    """Intrinsics from a 3DGS trainer's ``cameras.json`` (fx, fy, size per image)."""
+    from .trainer import cameras_json_intrinsics
+
+    return cameras_json_intrinsics(path)
+
+
 def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
-    """Cameras from HLoc's query list, rescaled to the image's actual size if it differs."""
+    """Cameras from HLoc's query list (or a trainer's ``cameras.json``), rescaled to the image's actual size."""
+    if str(path).lower().endswith(".json"):
+        return from_cameras_json(path)
     return _lookup(parse_query_list(path, allow_distortion=allow_distortion), path, "query")
 
 

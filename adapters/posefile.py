@@ -135,7 +135,8 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
     """Read a pose file; raises ValueError naming file and line for a malformed line.
 
     Args:
-        path: the file. dialect: "auto", or one of ``DIALECTS``.
+        path: the file. dialect: "auto", or one of ``DIALECTS``. A ``.json`` file is read as a 3DGS trainer's
+            ``cameras.json`` (``adapters/trainer.py``; written back in the generic dialect).
 
     Returns:
         A :class:`PoseFile` (ordered mapping name -> world-to-camera Pose, w x y z quaternions).
@@ -143,6 +144,10 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: pose file not found")
+    if path.suffix.lower() == ".json" and dialect in ("auto", "cameras_json"):
+        from .trainer import read_cameras_json
+
+        return read_cameras_json(path)
     text = path.read_text(encoding="utf-8", errors="strict")
     final_newline = text.endswith("\n")
     lines = text.split("\n")

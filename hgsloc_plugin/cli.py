@@ -1,4 +1,4 @@
-"""The ``hgsloc`` command line: refine, evaluate, render, demo. User errors end in one line, exit code 2."""
+"""The ``hgsloc`` command line: check, refine, evaluate, render, demo. User errors end in one line, exit code 2."""
 
 from __future__ import annotations
 
@@ -25,6 +25,13 @@ def _intrinsics(args):
     return intr.from_pgt(args.pgt_focal)
 
 
+def _white(args) -> bool:
+    """--white-background, or what the trainer recorded in the --scene folder's cfg_args."""
+    from .scene import resolve_scene
+
+    return bool(args.white_background or resolve_scene(args.scene)[1])
+
+
 def cmd_refine(args) -> int:
     from .pipeline import refine_pose_file
     from .refine import RefineConfig
@@ -32,7 +39,7 @@ def cmd_refine(args) -> int:
     overrides = {}
     if args.metric:
         overrides["metric"] = args.metric
-    if args.white_background:
+    if _white(args):
         overrides["background"] = (1.0, 1.0, 1.0)
     if args.max_shift is not None:
         overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
@@ -41,6 +48,11 @@ def cmd_refine(args) -> int:
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    if not args.skip_check:  # refining poses in another frame or convention would return nonsense
+        rep = _check(args, 4)
+        if not rep.ok:
+            raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
+                             "refines anyway)")
     rep = refine_pose_file(args.scene, Path(args.poses), Path(args.images), _intrinsics(args), Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
@@ -84,6 +96,35 @@ def parse_length(text: str, flag: str = "--max-shift") -> float:
 def parse_angle(text: str, flag: str = "--max-rotation") -> float:
     """'5deg', '5', '0.1rad' -> degrees."""
     return _with_unit(text, _ANGLE_UNITS, flag)
+
+
+def _check(args, sample: int, figures=None):
+    from .adapters import read_poses
+    from .adapters.names import resolve_image
+    from .check import check_poses
+    from .scene import GaussianScene
+
+    scene = GaussianScene.from_ply(args.scene)
+    pf = read_poses(args.poses)
+    images = Path(args.images)
+    return check_poses(scene, {n: pf[n] for n in pf}, lambda n: resolve_image(n, images), _intrinsics(args),
+                       sample=sample, background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0),
+                       figures=figures)
+
+
+def cmd_check(args) -> int:
+    from .fileio import dumps_json
+
+    rep = _check(args, args.sample, Path(args.figures) if args.figures else None)
+    if args.json:
+        print(dumps_json(rep.to_dict()))
+    else:
+        for k, n in enumerate(rep.names):
+            alt = min((h for h in rep.costs if h != "as given"), key=lambda h: rep.costs[h][k])
+            print(f"{n}: cs cost {rep.costs['as given'][k]:.3f} (best other reading '{alt}' "
+                  f"{rep.costs[alt][k]:.3f}), PSNR {rep.psnr[k]:.1f} dB, SSIM {rep.ssim[k]:.3f}")
+        print(f"{rep.verdict}: {rep.message()}")
+    return 0 if rep.ok else 1
 
 
 def cmd_evaluate(args) -> int:
@@ -134,7 +175,7 @@ def cmd_render(args) -> int:
     c = _floats(args.camera, 6, "--camera 'W H fx fy cx cy'")
     cam = Camera(int(c[0]), int(c[1]), *c[2:])
     img = render(GaussianScene.from_ply(args.scene), cam, Pose(p[:4], p[4:]),
-                 background=(1.0, 1.0, 1.0) if args.white_background else (0.0, 0.0, 0.0))
+                 background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0))
     save_png(img, args.out)
     print(f"wrote {args.out} ({cam.width}x{cam.height})")
     return 0
@@ -158,11 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     r = sub.add_parser("refine", help="refine a localizer's pose file (ACE, Marepo, HLoc, pGT, generic)")
-    r.add_argument("--scene", required=True, help="3DGS point_cloud.ply in the frame of the poses")
+    r.add_argument("--scene", required=True, help="3DGS point_cloud.ply in the frame of the poses, or a trainer's "
+                                                  "output folder (latest iteration, background from cfg_args)")
     r.add_argument("--poses", required=True, help="input pose file")
     r.add_argument("--images", required=True, help="folder with the query images")
     r.add_argument("--focal", type=float, help="one focal length, principal point at the centre")
-    r.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt")
+    r.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt or a trainer's cameras.json")
     r.add_argument("--colmap", help="COLMAP model folder")
     r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
@@ -180,7 +222,23 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=int, default=0, help="refine on N local Ray worker processes")
     r.add_argument("--ray-address", help="run on an existing Ray cluster ('auto' or ray://host:port)")
     r.add_argument("--quiet", action="store_true")
+    r.add_argument("--skip-check", action="store_true", help="do not check map/pose agreement first")
     r.set_defaults(func=cmd_refine)
+
+    c = sub.add_parser("check", help="do the map and the poses agree? names a convention error if one fits")
+    c.add_argument("--scene", required=True, help="3DGS .ply or a trainer's output folder")
+    c.add_argument("--poses", required=True, help="pose file (any dialect) or a trainer's cameras.json")
+    c.add_argument("--images", required=True, help="folder with the query images")
+    c.add_argument("--focal", type=float)
+    c.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt or a trainer's cameras.json")
+    c.add_argument("--colmap", help="COLMAP model folder")
+    c.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
+    c.add_argument("--allow-distortion", action="store_true")
+    c.add_argument("--white-background", action="store_true")
+    c.add_argument("--sample", type=int, default=8, help="queries to render (evenly spaced)")
+    c.add_argument("--figures", help="write query | rendering images here")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=cmd_check)
 
     e = sub.add_parser("evaluate", help="median errors and recalls against ground truth")
     e.add_argument("--poses", required=True, action="append", help="estimates (repeat per scene)")
@@ -206,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-RENDERING_COMMANDS = (cmd_refine, cmd_render, cmd_demo)
+RENDERING_COMMANDS = (cmd_refine, cmd_render, cmd_demo, cmd_check)
 
 
 def main(argv=None) -> int:

@@ -11,10 +11,10 @@ import torch.nn.functional as F
 from .camera import Camera
 
 
-def load_image(image, *, name: str = "image") -> np.ndarray:
+def load_image(image, *, name: str = "image", background=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Any supported query image as float32 [H, W, 3] in [0, 1].
 
-    Accepts a path (PNG/JPEG; RGBA is composited on black unless it is fully opaque), a numpy array
+    Accepts a path (PNG/JPEG; RGBA is composited on ``background``, the map's, unless fully opaque), a numpy array
     [H, W, 3] (uint8 or float in [0, 1]) or a torch tensor [3, H, W].
     """
     if isinstance(image, (str, Path)):
@@ -27,7 +27,7 @@ def load_image(image, *, name: str = "image") -> np.ndarray:
             im = im.convert("RGBA") if im.mode in ("RGBA", "LA", "P") else im.convert("RGB")
             a = np.asarray(im, dtype=np.float32) / 255.0
         if a.shape[2] == 4:
-            a = a[..., :3] * a[..., 3:4]
+            a = a[..., :3] * a[..., 3:4] + (1.0 - a[..., 3:4]) * np.asarray(background, np.float32)
         return np.ascontiguousarray(a)
     if isinstance(image, torch.Tensor):
         t = image.detach().cpu()

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .fileio import atomic_write_bytes
+
+logger = logging.getLogger("hgsloc_plugin")
 
 SH_C0 = 0.28209479177387814
 _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
@@ -22,6 +26,37 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-x))
 
 
+def resolve_scene(path) -> tuple[Path, bool | None]:
+    """A ``.ply`` path, or a 3DGS trainer's output folder (Inria layout: ``cfg_args`` with
+    ``white_background=True|False``, ``point_cloud/iteration_<N>/point_cloud.ply``)
+    -> (the latest iteration's ply, white_background or None).
+
+    ``white_background`` is None when the folder has no ``cfg_args`` (or for a plain ``.ply``).
+    """
+    path = Path(path)
+    if not path.is_dir():
+        return path, None
+    its = []
+    for p in (path / "point_cloud").glob("iteration_*/point_cloud.ply"):
+        m = re.fullmatch(r"iteration_(\d+)", p.parent.name)
+        if m:
+            its.append((int(m.group(1)), p))
+    if not its:
+        raise FileNotFoundError(f"{path}: no point_cloud/iteration_*/point_cloud.ply in this folder "
+                                "(give a 3DGS .ply or a trainer's output folder)")
+    it, ply = max(its)
+    white = None
+    cfg = path / "cfg_args"
+    if cfg.is_file():
+        m = re.search(r"white_background\s*=\s*(True|False)", cfg.read_text(errors="replace"))
+        if m:
+            white = m.group(1) == "True"
+    logger.info("scene %s: iteration %d (%s), background %s", path, it, ply,
+                "white" if white else "black" if white is not None else "not recorded (black)")
+    return ply, white
+
+
+
 @dataclass(eq=False)
 class GaussianScene:
     """Activated 3DGS parameters (float32), plus the raw file values for an exact round trip.
@@ -34,6 +69,7 @@ class GaussianScene:
         sh: spherical-harmonic colour coefficients [N, K, 3], K = (degree + 1)^2; sh[:, 0] is the DC term.
         raw: the file's values per property name (float32 [N] each), used by :meth:`to_ply`.
         source: the path it was read from, if any.
+        white_background: what the trainer recorded (``cfg_args``) when read from its output folder, else None.
     """
 
     means: np.ndarray
@@ -43,6 +79,7 @@ class GaussianScene:
     sh: np.ndarray
     raw: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     source: str | None = None
+    white_background: bool | None = None
 
     @property
     def num_gaussians(self) -> int:
@@ -154,13 +191,16 @@ class GaussianScene:
 
     @classmethod
     def from_ply(cls, path) -> GaussianScene:
-        """Read an official-layout 3DGS PLY (binary little-endian); raises ValueError naming the file and problem."""
-        path = Path(path)
+        """Read an official-layout 3DGS PLY (binary little-endian), or the latest iteration's PLY of a trainer's
+        output folder (see :func:`resolve_scene`); raises ValueError naming the file and problem."""
+        path, white = resolve_scene(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: scene file not found")
         data = path.read_bytes()
         raw = _parse_ply(data, str(path))
-        return cls._from_raw(raw, str(path))
+        scene = cls._from_raw(raw, str(path))
+        scene.white_background = white
+        return scene
 
     def to_ply(self, path) -> Path:
         """Write the official layout (same properties and order as read), atomically."""

@@ -137,6 +137,8 @@ class Refiner:
         if not isinstance(scene, GaussianScene):
             raise TypeError(f"scene must be a GaussianScene or a path to a .ply, got {type(scene).__name__}")
         self.scene = scene
+        if config is None and scene.white_background:  # recorded by the trainer (cfg_args)
+            config = RefineConfig(background=(1.0, 1.0, 1.0))
         self.config = config or RefineConfig()
         self.raster = raster or RasterConfig()
         self.renderer = get_renderer(scene, self.raster)
@@ -180,7 +182,8 @@ class Refiner:
             raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
         if not isinstance(coarse_pose, Pose):
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
-        img = check_size(load_image(image, name=name or "image"), camera, cfg.resize_query, name or "image")
+        img = load_image(image, name=name or "image", background=cfg.background)
+        img = check_size(img, camera, cfg.resize_query, name or "image")
         plan = self._plan(camera, coarse_pose)
         scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)

@@ -120,8 +120,14 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
     renderer = get_renderer(scene)
     costs: dict[str, list[float]] = {h: [] for h in HYPOTHESES}
     psnr, ssim, figs = [], [], []
+    used = []
     for name in names:
-        img = load_image(image_of(name), name=name, background=background)
+        try:
+            img = load_image(image_of(name), name=name, background=background)
+        except (FileNotFoundError, OSError, ValueError, KeyError) as exc:  # refine records it per query
+            logger.warning("check: skipping %s: %s", name, exc)
+            continue
+        used.append(name)
         cam = intrinsics(name, img.shape[1], img.shape[0]).with_max_side(SIDE)
         scorer = Scorer(renderer, "cs", background, MASK_ALPHA)
         scorer.set_query(cam, img)
@@ -138,6 +144,9 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
             path = Path(figures) / (name.replace("/", "_") + ".check.png")
             save_png(np.concatenate([q, rgb[0]], axis=1), path)
             figs.append(str(path))
+    if not used:
+        raise ValueError("no query image of the sample could be read")
+    names = used
     med = {h: float(np.median(c)) for h, c in costs.items()}
     order = sorted(med, key=med.get)
     best, second = order[0], order[1]

@@ -19,6 +19,7 @@ LAYERS = {
     "costs": 2, "render": 2,
     "adapters": 3,
     "refine": 4, "evaluate": 4, "noise": 4, "viz": 4,
+    "check": 5,
     "distributed": 5,
     "batch": 6,
     "plugin": 7,

@@ -236,13 +236,13 @@ class Renderer:
             if "win_h" not in b:
                 B, H, W = b["alpha"].shape
                 b["win_h"] = ti.ndarray(ti.f32, (B, H, W, 3, 3))
-                b["win_rows"] = ti.ndarray(ti.f32, (B, H, 2))
+                b["win_rows"] = ti.ndarray(ti.f32, (B, H, 1, 2))
                 b["win_out"] = ti.ndarray(ti.f64, (B, 2))
             n = len(part)
             window.horizontal_kernel()(b["rgb"], qstats, n, b["win_h"])
             window.vertical_cost_kernel(bool(luminance))(b["win_h"], qstats, b["alpha"], float(mask_alpha), n,
                                                          b["win_rows"])
-            window.rows_reduce_kernel()(b["win_rows"], n, b["win_out"])
+            self._reduce(b["win_rows"], n, b["win_out"])
             out.append(b["win_out"].to_numpy()[:n])
         return np.concatenate(out)
 

@@ -144,14 +144,17 @@ def cost_kernel(config: RasterConfig):
 
 @functools.cache
 def reduce_kernel():
-    """Sum run statistics [B, H, TX, S] into per-pose totals [B, S] in float64, in a fixed order."""
+    """Sum run statistics [B, H, TX, S] into per-pose totals [B, S] in float64, in a fixed order (row, then run).
+
+    S is read from the arrays, so the blend's ``Stat`` record and the window kernels' (sum, count) rows share it.
+    """
 
     @ti.kernel
     def reduce_stats(run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
                      out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
         H = run_stats.shape[1]
         TX = run_stats.shape[2]
-        for b, s in ti.ndrange(num_poses, NSTAT):
+        for b, s in ti.ndrange(num_poses, out.shape[1]):
             tot = ti.f64(0.0)
             for y in range(H):
                 for r in range(TX):

@@ -14,7 +14,8 @@ separable; coordinates outside the image are clamped to the border, i.e. replica
 The pixel's value is the mean over the three channels; a pixel counts when its rendered alpha >= ``mask_alpha``.
 ``cs`` compares local structure only (invariant to a brightness offset and robust to gain), which is what
 survives between a real photograph and an imperfect map. Sums run in a fixed order (one task per row, then one
-per pose in float64): deterministic. Reference twin: ``tests/reference/render_torch.py::window_cost``.
+per pose in float64 by ``blend.reduce_kernel``): deterministic.
+Reference twin: ``tests/reference/render_torch.py::window_cost``.
 """
 
 import functools
@@ -96,12 +97,13 @@ def horizontal_kernel():
 
 @functools.cache
 def vertical_cost_kernel(with_luminance: bool):
-    """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 2] = (sum of values, pixels)."""
+    """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 1, 2] = (sum of values, pixels),
+    the run-statistics layout that ``blend.reduce_kernel`` sums per pose."""
 
     @ti.kernel
     def vertical(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
                  alpha: ti.types.ndarray(dtype=ti.f32, ndim=3), mask_alpha: ti.f32, num_poses: ti.i32,
-                 rows: ti.types.ndarray(dtype=ti.f32, ndim=3)):
+                 rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
         for b, y in ti.ndrange(num_poses, H):
@@ -129,24 +131,7 @@ def vertical_cost_kernel(with_luminance: bool):
                         v += cs
                     tot += v / 3.0
                     cnt += 1.0
-            rows[b, y, 0] = tot
-            rows[b, y, 1] = cnt
+            rows[b, y, 0, 0] = tot
+            rows[b, y, 0, 1] = cnt
 
     return vertical
-
-
-@functools.cache
-def rows_reduce_kernel():
-    """Per-pose totals [B, 2] (float64) of the row sums, in row order."""
-
-    @ti.kernel
-    def reduce_rows(rows: ti.types.ndarray(dtype=ti.f32, ndim=3), num_poses: ti.i32,
-                    out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
-        H = rows.shape[1]
-        for b, k in ti.ndrange(num_poses, 2):
-            tot = ti.f64(0.0)
-            for y in range(H):
-                tot += ti.cast(rows[b, y, k], ti.f64)
-            out[b, k] = tot
-
-    return reduce_rows

@@ -19,7 +19,7 @@ import taichi as ti
 
 from .backend import current_arch
 from .camera import Camera
-from .kernels import RasterConfig, window
+from .kernels import RasterConfig, cull, window
 from .kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
 from .kernels.layout import Rec, Stat
 from .kernels.projection import projection_kernel
@@ -87,9 +87,9 @@ class Renderer:
         self._cov3d = self._upload(covariances_3d(scene.quats, scene.scales), ti.f32)
         self._opac = self._upload(scene.opacities, ti.f32)
         self._sh = self._upload(scene.sh, ti.f32)
-        self._ws: dict[tuple, _Workspace] = {}
-        self._isect = None
-        self._isect_cap = 0
+        self._smax = self._upload(scene.scales.max(axis=1).astype(np.float32), ti.f32)
+        self.source_index: np.ndarray | None = None  # [n] indices into the scene for a working set
+        self._init_state()
         self._project = projection_kernel(self.config, self.sh_degree)
         self._count = count_kernel()
         self._sort = tile_sort_kernel(self.config)
@@ -104,6 +104,66 @@ class Renderer:
             self._blend_img = image_kernel(self.config)
             self._blend_cost = cost_kernel(self.config)
         self._reduce = reduce_kernel()
+
+    def _init_state(self) -> None:
+        self._ws: dict[tuple, _Workspace] = {}
+        self._isect = None
+        self._isect_cap = 0
+
+    def working_set(self, cameras: Sequence[Camera], pose: Pose, max_t: float, max_r_deg: float) -> Renderer:
+        """A renderer of the Gaussians that some pose of a region can see (``kernels/cull.py``).
+
+        Args:
+            cameras: every camera (size, intrinsics) the caller will render with.
+            pose: the region's centre pose (world-to-camera).
+            max_t / max_r_deg: camera-centre shift (scene units) and rotation (degrees) bounding the region.
+
+        Returns:
+            A :class:`Renderer` over the kept Gaussians (same order, same kernels; on the device, only the index
+            list crosses), or ``self`` when nearly all are kept (or none). For every pose of the region its
+            images and costs equal this renderer's bit for bit; ``.n`` is the number kept.
+        """
+        xs0, xs1, ys0, ys1, lx, ly, fmin = [], [], [], [], [], [], []
+        for c in cameras:
+            xs0.append(-c.cx / c.fx)
+            xs1.append((c.width - c.cx) / c.fx)
+            ys0.append(-c.cy / c.fy)
+            ys1.append((c.height - c.cy) / c.fy)
+            tanx, tany = 0.5 * c.width / c.fx, 0.5 * c.height / c.fy
+            lx.append(max(xs1[-1], -xs0[-1]) + 0.3 * tanx)
+            ly.append(max(ys1[-1], -ys0[-1]) + 0.3 * tany)
+            fmin.append(min(c.fx, c.fy))
+        rows, fac = cull.planes((min(xs0), max(xs1), min(ys0), max(ys1)), (max(lx), max(ly)), min(fmin),
+                                self.config)
+        keep = ti.ndarray(ti.i32, (self.n,))
+        cull.keep_kernel(self.config)(self._means, self._smax, self._opac,
+                                      self._upload(pose.matrix34().astype(np.float64), ti.f64),
+                                      self._upload(np.array(rows, np.float64), ti.f64),
+                                      self._upload(np.array(fac, np.float64), ti.f64), float(max_t),
+                                      float(np.radians(max_r_deg)), keep)
+        idx = np.flatnonzero(keep.to_numpy()).astype(np.int32)
+        if idx.size >= 0.95 * self.n or idx.size == 0:
+            return self
+        return self.subset(idx)
+
+    def subset(self, idx: np.ndarray) -> Renderer:
+        """A renderer of the Gaussians ``idx`` [M] (increasing indices), gathered on the device."""
+        idx = np.asarray(idx, np.int32)
+        if idx.ndim != 1 or idx.size == 0 or np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.n:
+            raise ValueError("subset indices must be a non-empty increasing list of Gaussian indices")
+        sub = object.__new__(Renderer)
+        sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce")})
+        sub.n = int(idx.size)
+        sub.source_index = idx
+        nd_idx = self._upload(idx, ti.i32)
+        for name in ("_means", "_cov3d", "_opac", "_sh", "_smax"):
+            src = getattr(self, name)
+            dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
+            cull.gather_kernel(len(src.shape))(src, nd_idx, dst)
+            setattr(sub, name, dst)
+        sub._init_state()
+        return sub
 
     @staticmethod
     def _upload(a: np.ndarray, dtype) -> ti.Ndarray:
@@ -197,6 +257,15 @@ class Renderer:
             self._blend_img(b["packed"], b["tile_start"], self._isect, b["isect_base"], b["background"], tx,
                             len(part), b["rgb"], b["alpha"], b["dimg"])
         return b
+
+    def visible(self, camera: Camera, poses: list[Pose]) -> np.ndarray:
+        """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n]."""
+        out = []
+        for part in self._chunks(poses):
+            ws = self._workspace(camera, min(len(poses), self.chunk))
+            self._geometry(camera, part, ws, (0.0, 0.0, 0.0))
+            out.append(ws.bufs["ntiles"].to_numpy()[:len(part)] > 0)
+        return np.concatenate(out)
 
     def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
         """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""

@@ -115,3 +115,17 @@ def make_room_scene(seed: int = 0, density: float = 1.0) -> GaussianScene:
     opac = rng.uniform(0.85, 0.98, n)
     return GaussianScene.from_arrays(means.astype(np.float32), quats.astype(np.float32), scales.astype(np.float32),
                                      opac.astype(np.float32), sh=sh)
+
+
+def densify(scene: GaussianScene, k: int, seed: int = 0) -> GaussianScene:
+    """A map-scale stand-in: every Gaussian copied ``k`` times, centres jittered by half its largest scale,
+    scales shrunk by 1 / sqrt(k) (so the surface looks the same with k times the Gaussians)."""
+    if k < 1:
+        raise ValueError(f"k must be >= 1, got {k}")
+    rng = np.random.default_rng(seed)
+    n = scene.num_gaussians
+    rep = np.repeat(np.arange(n), k)
+    jitter = rng.normal(size=(n * k, 3)) * (0.5 * scene.scales.max(axis=1))[rep, None]
+    return GaussianScene.from_arrays((scene.means[rep] + jitter).astype(np.float32), scene.quats[rep],
+                                     (scene.scales[rep] / np.sqrt(k)).astype(np.float32), scene.opacities[rep],
+                                     sh=scene.sh[rep])

@@ -42,6 +42,9 @@ class RefineConfig:
         acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
             of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
             coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
+        working_set: render each query's search from the Gaussians that some pose of its trust region can see,
+            selected once per query (``kernels/cull.py``; conservative: the images are bit-identical to the
+            whole map's), instead of the whole map per render.
         mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
         background: RGB behind the Gaussians (the colour the map was trained with).
         resize_query: resize a query whose size differs from the camera's instead of raising.
@@ -67,6 +70,7 @@ class RefineConfig:
     max_rotation_deg: float | None = None
     trust_steps: float = 8.0
     acceptance: str = "trust"
+    working_set: bool = True
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False

@@ -53,6 +53,7 @@ class RefineResult:
         search_pose / search_cost: the search's best pose and its cost, returned or not.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         expansions / renders: search effort; levels: per-level details; seconds: wall time.
+        working_set: Gaussians the search rendered (the per-query working set; the whole map when it is off).
         history: best cost after each expansion (costs of different levels may use different resolutions).
         error: set when the query failed (then ``pose`` is the coarse pose).
     """
@@ -74,6 +75,7 @@ class RefineResult:
     history: list[float] = field(default_factory=list)
     error: str | None = None
     name: str | None = None
+    working_set: int = 0
 
     @classmethod
     def failed(cls, coarse_pose, error: str, name: str | None = None, seconds: float = 0.0) -> RefineResult:
@@ -86,7 +88,7 @@ class RefineResult:
             "name": self.name, "accepted": self.accepted, "confidence": round(self.confidence, 4),
             "rejected": self.rejected, "cost_initial": self.cost_initial,
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
-            "seconds": round(self.seconds, 4), "error": self.error,
+            "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
             "assessment": self.assessment.to_dict() if self.assessment else None,
@@ -185,8 +187,9 @@ class Refiner:
         img = load_image(image, name=name or "image", background=cfg.background)
         img = check_size(img, camera, cfg.resize_query, name or "image")
         plan = self._plan(camera, coarse_pose)
-        scorer = Scorer(self.renderer, cfg.metric, cfg.background, cfg.mask_alpha)
-        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name)
+        renderer = self._working_set(plan, coarse_pose)
+        scorer = Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha)
+        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n)
         scorer.set_query(plan.cam_final, img)
         result.cost_initial = float(scorer([coarse_pose])[0])
         best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
@@ -209,6 +212,19 @@ class Refiner:
         result.renders = scorer.renders
         result.seconds = time.perf_counter() - t0
         return result
+
+    def _working_set(self, plan: _Plan, coarse: Pose):
+        """The renderer the search uses: the Gaussians some pose it may score can see (``kernels/cull.py``), or
+        the whole map when ``RefineConfig.working_set`` is off. The region is the trust region widened by two
+        final-level pixels of motion, which covers the acceptance rule's one-pixel moves around a pose on its
+        edge."""
+        if not self.config.working_set:
+            return self.renderer
+        cam = plan.cam_final
+        f = min(cam.fx, cam.fy)
+        t = plan.max_t + 2.0 * plan.depth / f
+        r = plan.max_r + math.degrees(2.0 / f)
+        return self.renderer.working_set([plan.cam_final, plan.cam_coarse], coarse, t, r)
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None) -> RefineResult:
         """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""

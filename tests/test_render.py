@@ -83,7 +83,8 @@ def test_pixel_and_splat_blend_agree():
 
 
 def test_tile_lists_match_reference_binning():
-    """The kernel's per-tile lists (ids and depth order) equal the reference binning."""
+    """The kernel's per-tile lists (ids and depth order) equal the reference binning (no exact depth ties here,
+    so the resident order does not matter)."""
     from hgsloc_plugin.render import get_renderer
 
     scene = random_scene(n=200, sh_degree=0, seed=3)
@@ -97,7 +98,7 @@ def test_tile_lists_match_reference_binning():
     ref = bin_tiles(project(scene, cam, T.matrix()), cam)
     assert len(starts) == len(ref) + 1
     for t, ids in enumerate(ref):
-        got = isect[starts[t]:starts[t + 1]]
+        got = r.source_index[isect[starts[t]:starts[t + 1]]]  # resident (Morton) order -> scene indices
         np.testing.assert_array_equal(got, ids.numpy(), err_msg=f"tile {t}")
 
 

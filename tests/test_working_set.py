@@ -29,10 +29,10 @@ def check_equal(scene, cams, centre, max_t, max_r, n=6, seed=0, background=(0.0,
     window costs from the working set are bit-identical to the whole map's. Returns the kept fraction."""
     full = get_renderer(scene)
     sub = full.working_set(cams, centre, max_t, max_r)
-    kept = np.arange(scene.num_gaussians) if sub is full else sub.source_index
+    kept = sub.source_index
     poses = region_poses(centre, max_t, max_r, n, seed)
     for cam in cams:
-        seen = np.flatnonzero(full.visible(cam, poses).any(axis=0))
+        seen = full.source_index[full.visible(cam, poses).any(axis=0)]
         missing = np.setdiff1d(seen, kept)
         assert missing.size == 0, f"{missing.size} visible Gaussians dropped, e.g. {missing[:5]}"
         a = full.render_full(cam, poses, background)

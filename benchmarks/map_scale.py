@@ -1,0 +1,121 @@
+"""Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set.
+
+Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--out FILE]
+
+The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
+shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
+is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
+process so that its peak memory (max RSS) is its own. Paths:
+- ``whole map``: every render projects, sorts and blends the whole map (``RefineConfig(working_set=False)``);
+- ``working set``: the default: the Gaussians some pose of the query's trust region can see, selected once per
+  query (``kernels/cull.py``).
+
+Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
+the working-set row includes nothing of the selection, which is counted in s / query), working-set size,
+renders and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PATHS = ("whole map", "working set")
+
+
+def child(k: int, path: str, queries: int, noise: str) -> dict:
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.demo.queries import degrade, query_poses
+    from hgsloc_plugin.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.noise import apply_protocol
+
+    hp.init()
+    room = make_room_scene()
+    cam = QUERY_CAMERA
+    gts = query_poses(queries, seed=1)
+    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, cam, gts))]
+    rng = np.random.default_rng(7)
+    priors = [apply_protocol(g, noise, rng) for g in gts]
+    scene = densify(room, k)
+    del room
+    cfg = hp.RefineConfig(working_set=path == "working set")
+    refiner = hp.HGSLocPlugin(scene, cfg)
+    # per-render cost at the scoring size, around the first prior, on the renderer the search would use
+    plan = refiner._plan(cam, priors[0])
+    renderer = refiner._working_set(plan, priors[0])
+    poses = [apply_protocol(priors[0], "1cm,0.5deg", np.random.default_rng(s)) for s in range(14)]
+    renderer.render_full(plan.cam_final, poses)  # warm-up: compile, workspaces
+    t0 = time.perf_counter()
+    reps = 3
+    for _ in range(reps):
+        renderer.render_full(plan.cam_final, poses)
+    ms = 1000 * (time.perf_counter() - t0) / (reps * len(poses))
+    e0, e1, ren, sec, wset = [], [], [], [], []
+    for img, gt, prior in zip(imgs, gts, priors):
+        r = refiner.refine(img, cam, prior)
+        e0.append(prior.errors_to(gt))
+        e1.append(r.pose.errors_to(gt))
+        ren.append(r.renders)
+        sec.append(r.seconds)
+        wset.append(r.working_set)
+    e0, e1 = np.array(e0), np.array(e1)
+    return {"k": k, "path": path, "gaussians": scene.num_gaussians, "ms_per_render": ms,
+            "working_set": float(np.median(wset)), "renders": float(np.median(ren)), "s_per_query": float(np.mean(sec)),
+            "before": [float(np.median(e0[:, 0])) * 100, float(np.median(e0[:, 1]))],
+            "after": [float(np.median(e1[:, 0])) * 100, float(np.median(e1[:, 1]))],
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--k", nargs="+", type=int, default=[1, 4, 10, 20])
+    ap.add_argument("--queries", type=int, default=3)
+    ap.add_argument("--noise", default="3cm,1deg")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise)))
+        return
+    lines = [f"Densified demo room, {a.queries} queries, noise {a.noise}; 2 threads unless the machine has more.\n",
+             "| Gaussians | path | ms / render | working set | renders / query | s / query | speed-up | "
+             "before t / R | after t / R | peak RSS (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    t_all = time.time()
+    for k in a.k:
+        rows = {}
+        for path in PATHS:
+            out = subprocess.run([sys.executable, __file__, "--child", str(k), path, "--queries", str(a.queries),
+                                  "--noise", a.noise], capture_output=True, text=True)
+            if out.returncode != 0:
+                print(out.stderr[-2000:], file=sys.stderr)
+                raise SystemExit(f"child k={k} {path} failed")
+            rows[path] = json.loads(out.stdout.strip().splitlines()[-1])
+        for path, r in rows.items():
+            sp = rows["whole map"]["s_per_query"] / r["s_per_query"]
+            line = (f"| {r['gaussians']:,} | {path} | {r['ms_per_render']:.1f} | {r['working_set']:,.0f} | "
+                    f"{r['renders']:.0f} | {r['s_per_query']:.2f} | {sp:.2f}x | {r['before'][0]:.2f} / "
+                    f"{r['before'][1]:.2f} | {r['after'][0]:.2f} / {r['after'][1]:.3f} | {r['peak_rss_mb']:.0f} |")
+            lines.append(line)
+            print(line, flush=True)
+    lines.append(f"\nTotal {time.time() - t_all:.0f} s.")
+    print(lines[-1])
+    if a.out:
+        from hgsloc_plugin.fileio import atomic_write_bytes
+
+        atomic_write_bytes(Path(a.out), ("\n".join(lines) + "\n").encode())
+
+
+if __name__ == "__main__":
+    main()

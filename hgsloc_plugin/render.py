@@ -201,6 +201,8 @@ class Renderer:
             return ws
         n, B, ts = self.n, batch, self.config.tile_size
         tx, ty = -(-camera.width // ts), -(-camera.height // ts)
+        if max(tx, ty) >= 1 << 15:  # the sort packs tile ranges in 16 bits
+            raise ValueError(f"image {camera.width}x{camera.height} has too many tiles per axis")
         nd = ti.ndarray
         bufs = dict(
             viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
@@ -208,7 +210,8 @@ class Renderer:
             packed=nd(ti.f32, (B, n, Rec.SIZE)),
             totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
             keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)), ids_a=nd(ti.i32, (B, n)),
-            ids_b=nd(ti.i32, (B, n)), hist=nd(ti.i32, (B, 256)), cursor=nd(ti.i32, (B, tx * ty)),
+            ids_b=nd(ti.i32, (B, n)), rects=nd(ti.i32, (4, B, n)), hist=nd(ti.i32, (B, 256)),
+            cursor=nd(ti.i32, (B, tx * ty)),
             tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)),
             tiles=(tx, ty),
         )
@@ -247,7 +250,7 @@ class Renderer:
             self._isect_cap = cap
         b["isect_base"].from_numpy(base)
         self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, b["keys_a"], b["keys_b"],
-                   b["ids_a"], b["ids_b"], b["hist"], b["cursor"], b["tile_start"], self._isect)
+                   b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"], self._isect)
 
     def _chunks(self, poses: list[Pose]):
         c = self.chunk

@@ -30,10 +30,11 @@ GOOD_RISES = np.full(12, 0.01)
     (1.0, 0.9, np.r_[np.full(11, 0.01), -0.001], 0.1, 0.5, "flat valley"),  # a 1-px move is downhill
     (1.0, 0.9, np.r_[np.full(11, 0.01), 1e-5], 0.1, 0.5, "flat valley"),  # one axis unconstrained
     (1.0, 0.9, GOOD_RISES, 0.95, 0.5, "trust-region edge"),
+    (1.0, 0.5, np.full(12, 0.001), 0.1, 0.5, "weak alignment"),  # significant and sharp, but 0.2 % of the cost
     (1.0, 0.9, GOOD_RISES, 0.1, 7.0, "level inconsistency"),
 ])
 def test_acceptance_rule_reasons(initial, best, rises, travel, level_shift, reason):
-    a = assess(initial, best, rises, travel, level_shift)
+    a = assess(initial, best, rises, travel, level_shift, check_alignment=True)
     assert a.rejected == reason
     assert (a.confidence > 0) == (reason is None)
     assert 0.0 <= a.confidence <= 1.0

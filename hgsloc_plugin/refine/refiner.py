@@ -48,8 +48,8 @@ class RefineResult:
         cost_initial / cost_final: heuristic at the final scoring resolution, coarse vs returned pose.
         accepted: the search's pose passed the acceptance rule (``RefineConfig.acceptance``) and is returned.
         confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
-        rejected: why the search's pose was not returned ("insignificant", "flat valley", "trust-region edge",
-            "level inconsistency", "no improvement"), None when accepted or failed.
+        rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
+            "trust-region edge", "level inconsistency", "no improvement"), None when accepted or failed.
         search_pose / search_cost: the search's best pose and its cost, returned or not.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         expansions / renders: search effort; levels: per-level details; seconds: wall time.
@@ -253,7 +253,8 @@ class Refiner:
         step_r, step_t = plan.levels[0]
         level_shift = max(float(np.linalg.norm(after_coarse.centre() - best.centre())) / max(step_t, 1e-12),
                           rotation_angle_deg(after_coarse.R, best.R) / max(step_r, 1e-12))
-        return assess(cost_initial, best_cost, rises, travel, level_shift)
+        return assess(cost_initial, best_cost, rises, travel, level_shift,
+                      check_alignment=self.config.metric in ("cs", "ssim", "ncc"))
 
     def _trust_region(self, coarse: Pose, max_t: float, max_r: float):
         c0, R0 = coarse.centre(), coarse.R

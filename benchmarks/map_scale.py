@@ -7,8 +7,8 @@ shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the un
 is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
 process so that its peak memory (max RSS) is its own. Paths:
 - ``whole map``: every render projects, sorts and blends the whole map (``RefineConfig(working_set=False)``);
-- ``working set``: the default: the Gaussians some pose of the query's trust region can see, selected once per
-  query (``kernels/cull.py``).
+- ``working set``: the Gaussians some pose of the query's trust region can see, selected once per query
+  (``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``, 300k).
 
 Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size,
@@ -49,7 +49,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     priors = [apply_protocol(g, noise, rng) for g in gts]
     scene = densify(room, k)
     del room
-    cfg = hp.RefineConfig(working_set=path == "working set")
+    cfg = hp.RefineConfig(working_set=path == "working set", working_set_min=0)  # forced at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = refiner._plan(cam, priors[0])

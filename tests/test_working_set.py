@@ -98,12 +98,14 @@ def test_refine_with_and_without_working_set_identical():
     gt = query_poses(1, seed=4)[0]
     img = degrade(hp.render(scene, cam, gt), np.random.default_rng(0))
     prior = se3_noise(gt, 1.0, 0.03, np.random.default_rng(1))
-    cfg = hp.RefineConfig.preset("fast")
+    cfg = hp.RefineConfig.preset("fast", working_set_min=0)
     a = hp.HGSLocPlugin(scene, cfg).refine(img, cam, prior)
     b = hp.HGSLocPlugin(scene, cfg.replace(working_set=False)).refine(img, cam, prior)
     assert a.working_set < 0.8 * scene.num_gaussians and b.working_set == scene.num_gaussians
     assert a.pose == b.pose and a.search_pose == b.search_pose
     assert a.cost_initial == b.cost_initial and a.search_cost == b.search_cost and a.renders == b.renders
+    # below working_set_min the whole map is used
+    assert hp.HGSLocPlugin(scene, hp.RefineConfig.preset("fast")).refine(img, cam, prior).working_set == len(scene)
 
 
 def test_subset_rejects_bad_indices():

@@ -44,7 +44,10 @@ class RefineConfig:
             coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
         working_set: render each query's search from the Gaussians that some pose of its trust region can see,
             selected once per query (``kernels/cull.py``; conservative: the images are bit-identical to the
-            whole map's), instead of the whole map per render.
+            whole map's), instead of the whole map per render; only for maps of at least ``working_set_min``
+            Gaussians: below that (measured with ``benchmarks/map_scale.py``: 0.86x at 49k, 0.97x at 195k,
+            1.09x at 488k), the selection and the per-query buffers cost about what they save, because the
+            projection already rejects invisible Gaussians early.
         mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
         background: RGB behind the Gaussians (the colour the map was trained with).
         resize_query: resize a query whose size differs from the camera's instead of raising.
@@ -71,6 +74,7 @@ class RefineConfig:
     trust_steps: float = 8.0
     acceptance: str = "trust"
     working_set: bool = True
+    working_set_min: int = 300_000
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False

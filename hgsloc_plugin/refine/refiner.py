@@ -215,10 +215,10 @@ class Refiner:
 
     def _working_set(self, plan: _Plan, coarse: Pose):
         """The renderer the search uses: the Gaussians some pose it may score can see (``kernels/cull.py``), or
-        the whole map when ``RefineConfig.working_set`` is off. The region is the trust region widened by two
-        final-level pixels of motion, which covers the acceptance rule's one-pixel moves around a pose on its
-        edge."""
-        if not self.config.working_set:
+        the whole map when ``RefineConfig.working_set`` is off or the map has fewer than ``working_set_min``
+        Gaussians. The region is the trust region widened by two final-level pixels of motion, which covers the
+        acceptance rule's one-pixel moves around a pose on its edge."""
+        if not self.config.working_set or self.renderer.n < self.config.working_set_min:
             return self.renderer
         cam = plan.cam_final
         f = min(cam.fx, cam.fy)

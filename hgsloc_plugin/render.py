@@ -141,18 +141,7 @@ class Renderer:
             list crosses), or ``self`` when nearly all are kept (or none). For every pose of the region its
             images and costs equal this renderer's bit for bit; ``.n`` is the number kept.
         """
-        xs0, xs1, ys0, ys1, lx, ly, fmin = [], [], [], [], [], [], []
-        for c in cameras:
-            xs0.append(-c.cx / c.fx)
-            xs1.append((c.width - c.cx) / c.fx)
-            ys0.append(-c.cy / c.fy)
-            ys1.append((c.height - c.cy) / c.fy)
-            tanx, tany = 0.5 * c.width / c.fx, 0.5 * c.height / c.fy
-            lx.append(max(xs1[-1], -xs0[-1]) + 0.3 * tanx)
-            ly.append(max(ys1[-1], -ys0[-1]) + 0.3 * tany)
-            fmin.append(min(c.fx, c.fy))
-        rows, fac = cull.planes((min(xs0), max(xs1), min(ys0), max(ys1)), (max(lx), max(ly)), min(fmin),
-                                self.config)
+        rows, fac = cull.planes(cameras, self.config)
         keep = ti.ndarray(ti.i32, (self.n,))
         cull.keep_kernel(self.config)(self._means, self._smax, self._opac,
                                       self._upload(pose.matrix34().astype(np.float64), ti.f64),
@@ -212,7 +201,7 @@ class Renderer:
             raise ValueError(f"image {camera.width}x{camera.height} has too many tiles per axis")
         nd = ti.ndarray
         bufs = dict(
-            viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
+            viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)), extent=nd(ti.f32, (2,)),
             depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
             packed=nd(ti.f32, (B, n, Rec.SIZE)),
             totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
@@ -238,10 +227,13 @@ class Renderer:
         b["viewmats"].from_numpy(vm)
         b["campos"].from_numpy(cp)
         b["intrin"].from_numpy(np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
+        b["extent"].from_numpy(np.array([cull.extent_coefficient(*cull.jacobian_limits(camera)),
+                                         cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
         self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
-                      b["intrin"], camera.width, camera.height, B, b["depth"], b["rect"], b["ntiles"], b["packed"])
+                      b["intrin"], camera.width, camera.height, B, b["extent"], b["depth"], b["rect"], b["ntiles"],
+                      b["packed"])
         self._count(b["ntiles"], B, b["totals"])
         totals = b["totals"].to_numpy()[:B]
         base = np.zeros(ws.batch, np.int64)

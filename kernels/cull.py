@@ -23,7 +23,8 @@ A Gaussian is dropped when that upper bound fails one of the five planes (no pos
 kept otherwise (and, in the gsplat radius mode, its opacity
 reaches ``alpha_min``, as the projection requires). Kept Gaussians keep their order, so depth ties resolve as
 in the full map and images rendered from the working set equal those from the full map bit for bit.
-Reference twin: ``tests/test_working_set.py::reference_keep`` (numpy, float64).
+The reference is the projection kernel itself: ``tests/test_working_set.py`` checks that every Gaussian it
+keeps for poses on the region's edge is in the working set.
 """
 
 
@@ -35,6 +36,25 @@ import taichi as ti
 from .config import RasterConfig
 
 NPLANES = 5  # right, left, bottom, top, near
+EXTENT_SLACK = 1.01  # float32 rounding margin on both terms of the bound
+
+
+def jacobian_limits(camera) -> tuple[float, float]:
+    """The projection's clamps of |x / z| and |y / z| for one camera (``projection.py``: the image bounds plus
+    0.3 of the half field of view)."""
+    c = camera
+    return (max((c.width - c.cx) / c.fx, c.cx / c.fx) + 0.15 * c.width / c.fx,
+            max((c.height - c.cy) / c.fy, c.cy / c.fy) + 0.15 * c.height / c.fy)
+
+
+def extent_coefficient(lim_x: float, lim_y: float) -> float:
+    """``A / s_max``: the box half-extent's term in the largest scale, for Jacobian clamps ``lim_x``, ``lim_y``."""
+    return 3.33 * math.sqrt(2.0 + lim_x * lim_x + lim_y * lim_y) * EXTENT_SLACK
+
+
+def extent_pixels(config: RasterConfig) -> float:
+    """``B * f``: the box half-extent's constant term in pixels (dilation, ceil to whole pixels)."""
+    return (3.33 * math.sqrt(2.0 * config.eps2d + 0.32) + 1.0) * EXTENT_SLACK + 1e-3
 
 
 @functools.cache
@@ -119,22 +139,22 @@ def gather_kernel(ndim: int):
     raise ValueError(f"gather_kernel: ndim must be 1, 2 or 3, got {ndim}")
 
 
-def planes(bounds: tuple[float, float, float, float], lim: tuple[float, float], f_min: float,
-           config: RasterConfig) -> tuple[list[list[float]], list[float]]:
-    """The five planes of :func:`keep_kernel` for image bounds in normalised coordinates.
-
-    Args:
-        bounds: (x_min, x_max, y_min, y_max) = (-cx / fx, (W - cx) / fx, -cy / fy, (H - cy) / fy), the union
-            over every camera the search scores with.
-        lim: (Lx, Ly), the largest Jacobian clamp |x / z|, |y / z| of the projection over those cameras.
-        f_min: the smallest focal length (pixels) of those cameras.
+def planes(cameras, config: RasterConfig) -> tuple[list[list[float]], list[float]]:
+    """The five planes of :func:`keep_kernel` for every camera (``width``, ``height``, ``fx``, ``fy``, ``cx``,
+    ``cy``) the search renders with: the union of their image bounds in normalised coordinates, their largest
+    Jacobian clamps (as ``projection.py`` computes them) and their smallest focal length.
 
     Returns:
         (planes [5][4]: unit normal and constant offset, a_factor [5]: offset per unit of ``smax``).
     """
-    x0, x1, y0, y1 = bounds
-    b = (3.33 * math.sqrt(2.0 * config.eps2d + 0.32) + 1.0) / f_min * 1.01 + 1e-6
-    a = 3.33 * math.sqrt(2.0 + lim[0] ** 2 + lim[1] ** 2) * 1.01
+    x0 = min(-c.cx / c.fx for c in cameras)
+    x1 = max((c.width - c.cx) / c.fx for c in cameras)
+    y0 = min(-c.cy / c.fy for c in cameras)
+    y1 = max((c.height - c.cy) / c.fy for c in cameras)
+    lims = [jacobian_limits(c) for c in cameras]
+    lx, ly = max(v[0] for v in lims), max(v[1] for v in lims)
+    b = extent_pixels(config) / min(min(c.fx, c.fy) for c in cameras)
+    a = extent_coefficient(lx, ly)
     rows, fac = [], []
     for n in ((-1.0, 0.0, x1 + b), (1.0, 0.0, -(x0 - b)), (0.0, -1.0, y1 + b), (0.0, 1.0, -(y0 - b))):
         norm = math.sqrt(sum(v * v for v in n))

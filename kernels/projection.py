@@ -21,9 +21,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
-        scale: an early, conservative frustum test before the covariance, see ``cull.py``),
-        viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx, cy),
-        width, height, num_poses;
+        scale), viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx,
+        cy), width, height, num_poses, extent [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f
+        for this camera: the bound of an early, conservative frustum test before the covariance);
         outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
         ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
         (fields named in ``layout.Rec``).
@@ -34,7 +34,6 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
     alpha_min = config.alpha_min
     inria = config.radius_mode == "inria"
     log_inv_amin = math.log(1.0 / alpha_min)
-    early_b_px = (3.33 * math.sqrt(2.0 * eps2d + 0.32) + 1.0) * 1.01 + 1e-3
 
     @ti.kernel
     def project(
@@ -49,6 +48,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         width: ti.i32,
         height: ti.i32,
         num_poses: ti.i32,
+        extent: ti.types.ndarray(dtype=ti.f32, ndim=1),
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
         rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
         ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -67,10 +67,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         lim_y_pos = (hf - cy) / fy + 0.3 * tan_fovy
         lim_y_neg = cy / fy + 0.3 * tan_fovy
         # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
-        lx = ti.max(lim_x_pos, lim_x_neg)
-        ly = ti.max(lim_y_pos, lim_y_neg)
-        early_a = 3.33 * ti.sqrt(2.0 + lx * lx + ly * ly) * 1.01
-        early_b = early_b_px / ti.min(fx, fy)
+        early_a, early_b = extent[0], extent[1]
         x_lo, x_hi = -cx / fx, (wf - cx) / fx
         y_lo, y_hi = -cy / fy, (hf - cy) / fy
         for b, i in ti.ndrange(num_poses, n):

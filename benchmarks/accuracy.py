@@ -5,7 +5,8 @@ Usage: python benchmarks/accuracy.py [--queries 4] [--paper-queries 2] [--out be
 Scenes: the embedded demo room and (when ../shared/data/scenes is present) donut.ply. Queries are rendered at
 known poses and degraded like photos (gain, gamma, blur, noise, an occluder); coarse poses follow the noise
 protocols (the paper's qA,tB and exact SE(3) magnitudes). Each protocol is refined with every heuristic under
-the default config, and with the emulated official scheme (paper neighbourhood, fixed step, 399 expansions,
+the default config (cs also as search only, search + polish and gradient only), and with the emulated official
+scheme (paper neighbourhood, fixed step, 399 expansions,
 L1) on a subset. Errors: camera-centre distance and rotation angle, medians over queries.
 """
 
@@ -26,7 +27,9 @@ from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
 from hgsloc_plugin.noise import apply_protocol  # noqa: E402
 
-HEURISTICS = ("sad", "psnr", "ssim", "affine")
+HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
+CS_MODES = {"search only": hp.RefineConfig(polish=False), "search + polish (default)": hp.RefineConfig(),
+            "gradient only": hp.RefineConfig.preset("gradient")}
 
 
 def donut_case(n, seed=0):
@@ -64,11 +67,11 @@ def main() -> None:
     a = ap.parse_args()
     hp.init()
     lines = ["| scene | noise | config | heuristic | noise error t / R | refined t / R | improvement t / R | "
-             "renders/q | s/q |", "|" + "---|" * 9]
+             "renders/q | derivative passes/q | s/q |", "|" + "---|" * 10]
     t_start = time.time()
     for case in (room_case(a.queries), donut_case(a.donut_queries)):
         if case is None:
-            lines.append("| donut.ply | skipped: ../shared/data/scenes/donut.ply not found |" + " |" * 7)
+            lines.append("| donut.ply | skipped: ../shared/data/scenes/donut.ply not found |" + " |" * 8)
             continue
         label, scene, cam, gts, protocols, units = case
         rng_q = np.random.default_rng(1000)
@@ -77,7 +80,8 @@ def main() -> None:
             rng = np.random.default_rng(7)
             coarse = [apply_protocol(g, spec, rng) for g in gts]
             t0, r0 = median_err(coarse, gts)
-            runs = [("default", h, hp.RefineConfig(metric=h), len(gts)) for h in HEURISTICS]
+            runs = [(mode, "cs", cfg, len(gts)) for mode, cfg in CS_MODES.items()]
+            runs += [("default", h, hp.RefineConfig(metric=h), len(gts)) for h in HEURISTICS]
             if spec in protocols[:2]:
                 runs.append(("paper emulation", "sad", hp.RefineConfig.preset(
                     "paper", paper_step_q=2e-4, paper_step_t=2e-3 if label == "demo room" else 2e-4),
@@ -90,12 +94,15 @@ def main() -> None:
                 lines.append(
                     f"| {label} | {spec} | {cfg_name} | {h} | {tb:.2f} / {rb:.2f} | {t1:.2f} / {r1:.3f} | "
                     f"{100 * (1 - t1 / tb):.0f} % / {100 * (1 - r1 / rb):.0f} % | "
-                    f"{np.median([r.renders for r in res]):.0f} | {np.median([r.seconds for r in res]):.2f} |")
+                    f"{np.median([r.renders for r in res]):.0f} | "
+                    f"{np.median([r.derivative_passes for r in res]):.0f} | "
+                    f"{np.median([r.seconds for r in res]):.2f} |")
                 print(lines[-1], flush=True)
     text = ("# Accuracy benchmark\n\n"
             f"Queries: {a.queries} on the room, {a.donut_queries} on the donut (paper emulation: "
             f"{a.paper_queries}), photo-degraded renderings at "
-            f"320x240, scoring at 160 px; backend {hp.current_arch()}; medians over queries; translation in "
+            f"320x240, scoring at 200 px (polish at 320 px); backend {hp.current_arch()}; medians over queries; "
+            "translation in "
             "scene units x 100 (cm for the room), rotation in degrees. "
             f"Total time {time.time() - t_start:.0f} s.\n\n" + "\n".join(lines) + "\n")
     Path(a.out).write_text(text)

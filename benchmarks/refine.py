@@ -1,15 +1,22 @@
-"""Refinement accuracy and cost: default config vs an emulation of the official scheme, one table.
+"""Refinement modes side by side: search only, search + polish (default), gradient only, the official scheme.
 
-Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego]
-Queries are rendered from the demo room at known poses (degraded like photos unless --clean), coarse poses are
-ground truth + exact SE(3) noise; errors are camera-centre distance and rotation angle. With --lego it also
-refines the 15 held-out *real* images of ../shared/data/lego.
+Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego-queries 6] [--out benchmarks/refine.md]
+
+Same queries and priors for every mode, one run. Cases, real photographs first:
+- ``snow``: 6 real phone photos against a 3DGS fitted to other photos (an imperfect map; ../shared/data/snow);
+  errors in 7-Scenes-equivalent cm (% of the query's median depth x 2) and degrees.
+- ``lego``: held-out renders whose pixels no 3DGS made (../shared/data/lego); scene units x 100.
+- the demo room, photo-degraded renderings at 320x240; cm.
+Rows: median (worst) error of the prior and of the returned pose, queries made worse (> 1 cm or > 0.5 deg),
+accepted, lattice renders, derivative passes, render-equivalents (renders + passes x the measured cost of a
+pass in renders: one pose of a 12-pose scoring batch at the search's final size, same run), seconds per query.
+``truth`` rows start at the true pose: where each map's own cost minimum lies (its floor).
+A final sweep measures where gradient only stops converging (room; converged = < 1 cm and < 0.5 deg).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -18,89 +25,179 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from real_photos import DATA, load_dataset, localizer_errors, shaped_prior  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.demo.queries import make_queries, query_poses  # noqa: E402
+from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
+from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.image import resize_image  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.render import get_renderer  # noqa: E402
 
-NOISE = ((0.01, 0.5), (0.03, 1.0), (0.10, 3.0))
+MODES = {
+    "search only": hp.RefineConfig(polish=False),
+    "search + polish (default)": hp.RefineConfig(),
+    "gradient only": hp.RefineConfig.preset("gradient"),
+}
+NOISE = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0))
+SWEEP = ((1.0, 0.5), (3.0, 1.0), (5.0, 2.0), (10.0, 3.0), (20.0, 5.0), (30.0, 10.0))
 
 
-def run(refiner, cam, gts, imgs, d, deg, seed=0):
-    rng = np.random.default_rng(seed)
-    e0, e1, renders, secs = [], [], [], []
-    for g, im in zip(gts, imgs):
-        c = se3_noise(g, deg, d, rng)
-        r = refiner.refine(im, cam, c)
-        e0.append(c.errors_to(g))
-        e1.append(r.pose.errors_to(g))
-        renders.append(r.renders)
-        secs.append(r.seconds)
+class PassCost:
+    """Measured cost of a derivative pass in renders, per image size, for one scene (timed in this run)."""
+
+    def __init__(self, scene, cam: hp.Camera, pose: hp.Pose, img: np.ndarray, config: hp.RefineConfig):
+        self.r = get_renderer(scene)
+        self.cam, self.pose, self.img, self.bg = cam, pose, img, config.background
+        final = cam.with_max_side(config.score_max_side)
+        q = self.r.upload_window_query(resize_image(img, final.width, final.height))
+        poses = [pose.perturbed_in_camera([1e-4 * k, 0, 0], [0, 0, 0]) for k in range(12)]
+        self.r.window_cost(final, poses, q, self.bg)
+        self.t_render = min(self._time(lambda: self.r.window_cost(final, poses, q, self.bg)) for _ in range(3)) / 12
+        self.ratio: dict[tuple[int, int], float] = {}
+
+    @staticmethod
+    def _time(fn) -> float:
+        t0 = time.perf_counter()
+        fn()
+        return time.perf_counter() - t0
+
+    def of(self, width: int, height: int) -> float:
+        key = (width, height)
+        if key not in self.ratio:
+            cam = self.cam.with_max_side(max(width, height))
+            q = self.r.upload_window_query(resize_image(self.img, cam.width, cam.height))
+            self.r.pose_gradient(cam, [self.pose], q, self.bg)
+            t = min(self._time(lambda: self.r.pose_gradient(cam, [self.pose], q, self.bg)) for _ in range(3))
+            self.ratio[key] = t / self.t_render
+        return self.ratio[key]
+
+    def render_equivalents(self, result) -> float:
+        return result.renders + sum(p.passes * self.of(p.width, p.height) for p in result.polish)
+
+
+def evaluate(refiner, cam, gts, imgs, priors, scale, cost: PassCost) -> dict:
+    e0, e1, ren, passes, req, sec, acc = [], [], [], [], [], [], 0
+    for k, (img, gt, prior) in enumerate(zip(imgs, gts, priors)):
+        r = refiner.refine(img, cam, prior)
+        for lst, p in ((e0, prior), (e1, r.pose)):
+            t, a = p.errors_to(gt)
+            lst.append((t * scale[k], a))
+        ren.append(r.renders)
+        passes.append(r.derivative_passes)
+        req.append(cost.render_equivalents(r))
+        sec.append(r.seconds)
+        acc += r.accepted
     e0, e1 = np.array(e0), np.array(e1)
-    return dict(t0=np.median(e0[:, 0]) * 100, r0=np.median(e0[:, 1]), t1=np.median(e1[:, 0]) * 100,
-                r1=np.median(e1[:, 1]), renders=float(np.median(renders)), sec=float(np.median(secs)))
+    worse = int(((e1[:, 0] > e0[:, 0] + 1.0) | (e1[:, 1] > e0[:, 1] + 0.5)).sum())
+    return dict(e0=e0, e1=e1, worse=worse, acc=acc, n=len(gts), renders=np.median(ren), passes=np.median(passes),
+                req=np.median(req), sec=np.median(sec))
 
 
-def row(label, noise, m):
-    red_t = 100 * (1 - m["t1"] / m["t0"])
-    red_r = 100 * (1 - m["r1"] / m["r0"])
-    return (f"| {label} | {noise} | {m['t0']:.2f} / {m['r0']:.2f} | {m['t1']:.2f} / {m['r1']:.3f} | "
-            f"{red_t:.0f} % / {red_r:.0f} % | {m['renders']:.0f} | {m['sec']:.2f} |")
+def fmt(e: np.ndarray) -> str:
+    return f"{np.median(e[:, 0]):.2f} / {np.median(e[:, 1]):.3f} ({e[:, 0].max():.2f} / {e[:, 1].max():.2f})"
 
 
-def lego(config):
-    from PIL import Image
+def row(mode: str, prior: str, m: dict) -> str:
+    return (f"| {mode} | {prior} | {fmt(m['e0'])} | {fmt(m['e1'])} | {m['worse']} | {m['acc']} / {m['n']} | "
+            f"{m['renders']:.0f} | {m['passes']:.0f} | {m['req']:.0f} | {m['sec']:.2f} |")
 
-    d = ROOT.parent / "shared" / "data" / "lego"
-    if not d.exists():
-        return f"(lego skipped: {d} not found)"
-    cj = json.loads((d / "camera.json").read_text())
-    cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
-    scene = hp.GaussianScene.from_ply(d / "lego.ply")
-    refiner = hp.HGSLocPlugin(scene, config.replace(background=(1.0, 1.0, 1.0), score_max_side=100))
-    gts, imgs = [], []
-    for line in (d / "gt.txt").read_text().splitlines():
-        t = line.split()
-        gts.append(hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]]))
-        rgba = np.asarray(Image.open(d / "queries" / t[0]).convert("RGBA"), np.float32) / 255
-        imgs.append(rgba[..., :3] * rgba[..., 3:] + (1 - rgba[..., 3:]))  # composite on white
-    out = []
-    for dd, deg in ((0.05, 1.0), (0.2, 3.0)):
-        out.append(row("default (lego, real images)", f"{dd:g} u, {deg:g} deg", run(refiner, cam, gts, imgs, dd, deg)))
-    return "\n".join(out)
+
+HEADER = ["| mode | prior | prior median (worst) t / R | returned median (worst) | worse | accepted | renders | "
+          "derivative passes | render-equivalents | s / query |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+
+def priors_for(gts, scale, seed=0) -> dict:
+    out = {"truth (map floor)": list(gts)}
+    for cm, deg in NOISE:
+        rng = np.random.default_rng(int(10 * cm + deg) + seed)
+        out[f"{cm:g} cm / {deg:g} deg"] = [se3_noise(g, deg, cm / s, rng) for g, s in zip(gts, scale)]
+    if (DATA / "poses" / "7scenes").exists():
+        errs = localizer_errors("marepo")
+        rng = np.random.default_rng(300)
+        out["Marepo-shaped"] = [shaped_prior(g, errs[int(rng.integers(len(errs)))], 200.0 / s)
+                                for g, s in zip(gts, scale)]
+    return out
+
+
+def run_case(label, scene, cam, gts, imgs, scale, bg, lines, modes=MODES) -> None:
+    lines += [f"\n### {label}: {len(gts)} queries, {scene.num_gaussians} Gaussians\n"] + HEADER
+    print("\n".join(lines[-3:]), flush=True)
+    cost = PassCost(scene, cam, gts[0], imgs[0], hp.RefineConfig(background=bg))
+    for mode, cfg in modes.items():
+        refiner = hp.HGSLocPlugin(scene, cfg.replace(background=bg))
+        for name, ps in priors_for(gts, scale).items():
+            lines.append(row(mode, name, evaluate(refiner, cam, gts, imgs, ps, scale, cost)))
+            print(lines[-1], flush=True)
+    ratios = ", ".join(f"{w}x{h}: {v:.1f}" for (w, h), v in sorted(cost.ratio.items()))
+    lines.append(f"\nOne derivative pass in renders (this run): {ratios}; one render = "
+                 f"{1e3 * cost.t_render:.1f} ms.")
+    print(lines[-1], flush=True)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--queries", type=int, default=6)
     ap.add_argument("--paper-queries", type=int, default=2)
-    ap.add_argument("--clean", action="store_true", help="queries are plain renderings (no photo degradation)")
-    ap.add_argument("--lego", action="store_true")
+    ap.add_argument("--lego-queries", type=int, default=6)
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "refine.md"))
     a = ap.parse_args()
     hp.init()
+    t_start = time.time()
+    lines: list[str] = []
+    snow = load_dataset("snow")
+    if snow is not None:
+        cam, scene, qs, bg = snow
+        qs = qs[: a.queries]
+        run_case("snow (real photos; 7-Scenes-equivalent cm)", scene, cam, [q[1] for q in qs], [q[2] for q in qs],
+                 [200.0 / q[3] for q in qs], bg, lines)
+    lego = load_dataset("lego")
+    if lego is not None and a.lego_queries > 0:
+        cam, scene, qs, bg = lego
+        qs = qs[: a.lego_queries]
+        run_case("lego (held-out renders, white background; units x 100)", scene, cam, [q[1] for q in qs],
+                 [q[2] for q in qs], [100.0] * len(qs), bg, lines)
     scene = make_room_scene()
-    cam = hp.Camera.from_fov(320, 240, 65.0)
+    cam = QUERY_CAMERA
     gts = query_poses(a.queries, seed=1)
-    imgs = make_queries(scene, cam, gts, realistic=not a.clean)
-    default = hp.RefineConfig()
+    imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
+    modes = dict(MODES)
     paper = hp.RefineConfig.preset("paper", paper_step_q=2e-4, paper_step_t=2e-3, score_max_side=160)
-    print(f"demo room: {scene.num_gaussians} Gaussians; queries {cam.width}x{cam.height} "
-          f"({'clean' if a.clean else 'photo-degraded'}), scoring at {default.score_max_side} px; backend "
-          f"{hp.current_arch()}")
-    print("| config | noise | before t (cm) / R (deg) | after | reduction t / R | renders/query | s/query |")
-    print("|---|---|---|---|---|---|---|")
-    t0 = time.time()
-    for d, deg in NOISE:
-        print(row("default (lattice, levels)", f"{d * 100:g} cm, {deg:g} deg",
-                  run(hp.HGSLocPlugin(scene, default), cam, gts, imgs, d, deg)), flush=True)
-    for d, deg in NOISE[:2]:
-        print(row("paper emulation (14 raw moves, fixed step, 399 exp.)", f"{d * 100:g} cm, {deg:g} deg",
-                  run(hp.HGSLocPlugin(scene, paper), cam, gts[: a.paper_queries], imgs[: a.paper_queries], d, deg)),
-              flush=True)
-    if a.lego:
-        print(lego(default))
-    print(f"(total {time.time() - t0:.0f} s)")
+    run_case("demo room (photo-degraded renders; cm)", scene, cam, gts, imgs, [100.0] * len(gts), (0.0, 0.0, 0.0),
+             lines, modes)
+    lines += [f"\n### demo room, emulated official scheme ({a.paper_queries} queries)\n"] + HEADER
+    cost = PassCost(scene, cam, gts[0], imgs[0], hp.RefineConfig())
+    refiner = hp.HGSLocPlugin(scene, paper)
+    n = a.paper_queries
+    for cm, deg in NOISE[:2]:
+        rng = np.random.default_rng(int(10 * cm + deg))
+        ps = [se3_noise(g, deg, cm / 100.0, rng) for g in gts][:n]
+        lines.append(row("paper emulation", f"{cm:g} cm / {deg:g} deg",
+                         evaluate(refiner, cam, gts[:n], imgs[:n], ps, [100.0] * n, cost)))
+        print(lines[-1], flush=True)
+    lines += ["\n### where gradient only stops converging (demo room; converged: < 1 cm and < 0.5 deg)\n",
+              "| prior | gradient only: converged | median error | search + polish: converged | median error |",
+              "|---|---|---|---|---|"]
+    print("\n".join(lines[-3:]), flush=True)
+    for cm, deg in SWEEP:
+        rng = np.random.default_rng(int(10 * cm + deg) + 7)
+        ps = [se3_noise(g, deg, cm / 100.0, rng) for g in gts]
+        cells = []
+        for mode in ("gradient only", "search + polish (default)"):
+            m = evaluate(hp.HGSLocPlugin(scene, MODES[mode]), cam, gts, imgs, ps, [100.0] * len(gts), cost)
+            ok = (m["e1"][:, 0] < 1.0) & (m["e1"][:, 1] < 0.5)
+            cells += [f"{ok.sum()} / {len(ok)}", f"{np.median(m['e1'][:, 0]):.2f} / {np.median(m['e1'][:, 1]):.3f}"]
+        lines.append(f"| {cm:g} cm / {deg:g} deg | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 1)[1].split("Usage")[0].strip() +
+            f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines) + "\n")
+    tmp = Path(a.out).with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(a.out)
+    print(f"wrote {a.out}")
 
 
 if __name__ == "__main__":

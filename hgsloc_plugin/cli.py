@@ -45,6 +45,8 @@ def cmd_refine(args) -> int:
         overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
     if args.max_rotation is not None:
         overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
+    if args.no_polish:
+        overrides["polish"] = False
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
@@ -209,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
-    r.add_argument("--config", default="default", help="preset: default, fast, accurate, paper")
+    r.add_argument("--config", default="default", help="preset: default, fast, accurate, gradient, paper")
+    r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
     r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
     r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "
                                        "(scene units; default: 8 coarsest steps)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,3 +187,20 @@ def test_cli_refine_writes_figures(tiny_case, tmp_path):
     pngs = list(figs.glob("*.png"))
     assert len(pngs) == 1 and pngs[0].name.startswith("seq-01")
     assert Image.open(pngs[0]).size == (2 * 128 + 4, 2 * 96 + 4)
+
+
+def test_cli_gradient_preset_and_no_polish(tiny_case, tmp_path):
+    """As a user runs it: --config gradient refines with derivative passes only; --no-polish turns the polish off."""
+    d = tiny_case
+    base = [sys.executable, "-m", "hgsloc_plugin.cli", "refine", "--scene", str(d / "scene.ply"), "--poses",
+            str(d / "ace.txt"), "--images", str(d / "images"), "--focal", "90", "--quiet", "--limit", "1"]
+    reports = {}
+    for name, extra in (("gradient", ["--config", "gradient"]), ("nopolish", ["--config", "fast", "--no-polish"])):
+        out = tmp_path / f"{name}.txt"
+        p = subprocess.run(base + ["--out", str(out)] + extra, capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        reports[name] = next(iter(json.loads(Path(str(out) + ".json").read_text())["queries"].values()))
+    g, n = reports["gradient"], reports["nopolish"]
+    assert g["expansions"] == 0 and g["derivative_passes"] >= 2 and len(g["polish"]) >= 2
+    assert len(g["polish"][-1]["jtj"]) == 6
+    assert n["derivative_passes"] == 0 and n["polish"] == [] and n["expansions"] > 0

@@ -108,7 +108,7 @@ def test_refine_reduces_error_on_rendered_queries(room, metric):
         coarse = se3_noise(gt, 1.5, 0.04, rng)
         r = refiner.refine(im, CAM, coarse)
         assert r.accepted and r.cost_final < r.cost_initial
-        assert r.renders > 0 and r.expansions > 0 and len(r.levels) == len(refiner.config.level_pixels)
+        assert r.renders > 0 and r.expansions > 0 and len(r.levels) == len(refiner.config.step_pixels)
         before.append(coarse.errors_to(gt))
         after.append(r.pose.errors_to(gt))
     b, a = np.median(before, 0), np.median(after, 0)

@@ -72,12 +72,15 @@ def test_user_trust_region_bounds_the_search():
     gt = query_poses(1, seed=4)[0]
     img = hp.render(room, cam, gt)
     coarse = se3_noise(gt, 2.0, 0.08, np.random.default_rng(2))
-    cfg = hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5)
-    r = hp.HGSLocPlugin(room, cfg).refine(img, cam, coarse)
-    shift = np.linalg.norm(r.search_pose.centre() - coarse.centre())
-    _, dr = r.search_pose.errors_to(coarse)
-    assert shift <= 0.02 + 1e-9 and dr <= 0.5 + 1e-9
-    assert shift > 0.01, "the search moved towards the optimum up to the region"
+    # the lattice alone (fine levels: the coarse steps are larger than the region), then search + polish
+    for cfg, moved in ((hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5, polish=False,
+                                               level_pixels=(4.0, 2.0, 1.0, 0.5, 0.25)), 0.01),
+                       (hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5), 0.005)):
+        r = hp.HGSLocPlugin(room, cfg).refine(img, cam, coarse)
+        shift = np.linalg.norm(r.search_pose.centre() - coarse.centre())
+        _, dr = r.search_pose.errors_to(coarse)
+        assert shift <= 0.02 + 1e-9 and dr <= 0.5 + 1e-9
+        assert shift > moved, "the search moved towards the optimum up to the region"
 
 
 def _snow():

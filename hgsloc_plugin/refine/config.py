@@ -23,7 +23,10 @@ class RefineConfig:
             or "paper" (14 moves: +-d on each raw q, t component; quaternion normalised before rendering).
         levels: explicit (rotation step in degrees, translation step in scene units) per level, coarse to fine;
             empty = chosen from the scene depth and the camera (see ``level_pixels``).
-        level_pixels: image motion in scoring pixels of each automatic level's step.
+        level_pixels: image motion in scoring pixels of each automatic level's step. None: (4, 2, 1) when the
+            polish runs (it finishes below one pixel: measured in benchmarks/refine.py as accurate as the levels
+            down to 0.125 px + polish on the real snow photos and the room, with about half the renders), else
+            (4, 2, 1, 0.5, 0.25, 0.125).
         max_expansions_per_level / max_expansions: expansion budgets (per level / whole query).
         patience: consecutive expansions without a new best before a level stops (0 = never stop early).
         pivot: lattice rotations turn about a point on the optical axis at the median scene depth (decouples
@@ -48,6 +51,15 @@ class RefineConfig:
             Gaussians: below that (measured with ``benchmarks/map_scale.py``: 0.86x at 49k, 0.97x at 195k,
             1.09x at 488k), the selection and the per-query buffers cost about what they save, because the
             projection already rejects invisible Gaussians early.
+        polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
+            derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
+            falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.
+        polish_iterations: derivative passes at most per polish (one pass costs about 3-4 single renders).
+        polish_max_side: longer image side of the polish (the query's own size when smaller). Measured on the
+            room's 320x240 queries: polishing at 320 px reaches 0.04 cm, at 200 px (a downsampled query) 0.26 cm,
+            no better than the search: precision needs the query's own pixels.
+        search: run the lattice search. False with ``polish`` = gradient only: Levenberg-Marquardt from the
+            coarse pose, coarse to fine over the scoring sizes (the "gradient" preset).
         mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
         background: RGB behind the Gaussians (the colour the map was trained with).
         resize_query: resize a query whose size differs from the camera's instead of raising.
@@ -57,7 +69,7 @@ class RefineConfig:
     metric: str = "cs"
     neighbourhood: str = "lattice"
     levels: tuple[tuple[float, float], ...] = ()
-    level_pixels: tuple[float, ...] = (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
+    level_pixels: tuple[float, ...] | None = None
     max_expansions_per_level: int = 30
     max_expansions: int = 180
     patience: int = 2
@@ -75,6 +87,10 @@ class RefineConfig:
     acceptance: str = "trust"
     working_set: bool = True
     working_set_min: int = 300_000
+    polish: bool = True
+    polish_iterations: int = 8
+    polish_max_side: int = 320
+    search: bool = True
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False
@@ -96,6 +112,11 @@ class RefineConfig:
             raise ValueError(f"neighbourhood must be 'lattice' or 'paper', got {self.neighbourhood!r}")
         if self.max_expansions < 0 or self.max_expansions_per_level < 0 or self.patience < 0:
             raise ValueError("expansion budgets and patience must be >= 0")
+        if self.polish_iterations < 1 or self.polish_max_side < 8:
+            raise ValueError("polish_iterations must be >= 1 and polish_max_side >= 8")
+        if not self.search and not (self.polish and self.metric == "cs" and self.neighbourhood == "lattice"):
+            raise ValueError("search=False (gradient only) needs polish=True, metric='cs' and the lattice "
+                             "neighbourhood")
         if self.score_max_side < 8:
             raise ValueError(f"score_max_side must be >= 8, got {self.score_max_side}")
         if not (0 < self.coarse_scale <= 1):
@@ -104,15 +125,28 @@ class RefineConfig:
             if len(lv) != 2 or lv[0] < 0 or lv[1] < 0 or (lv[0] == 0 and lv[1] == 0):
                 raise ValueError(f"each level must be (rotation_deg >= 0, translation >= 0), got {lv!r}")
         object.__setattr__(self, "levels", tuple(tuple(float(x) for x in lv) for lv in self.levels))
-        object.__setattr__(self, "level_pixels", tuple(float(x) for x in self.level_pixels))
+        if self.level_pixels is not None:
+            object.__setattr__(self, "level_pixels", tuple(float(x) for x in self.level_pixels))
         object.__setattr__(self, "background", tuple(float(x) for x in self.background))
 
     @staticmethod
     def preset(name: str, **overrides) -> RefineConfig:
-        """A named preset ("default", "fast", "accurate", "paper"), with optional field overrides."""
+        """A named preset ("default", "fast", "accurate", "gradient", "paper"), with optional field overrides."""
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
         return dataclasses.replace(PRESETS[name], **overrides)
+
+    @property
+    def polishes(self) -> bool:
+        """Whether the polish runs (it is on, the metric is cs and the neighbourhood the lattice)."""
+        return self.polish and self.metric == "cs" and self.neighbourhood == "lattice"
+
+    @property
+    def step_pixels(self) -> tuple[float, ...]:
+        """``level_pixels``, or its default when None."""
+        if self.level_pixels is not None:
+            return self.level_pixels
+        return (4.0, 2.0, 1.0) if self.polishes else (4.0, 2.0, 1.0, 0.5, 0.25, 0.125)
 
     def replace(self, **changes) -> RefineConfig:
         return dataclasses.replace(self, **changes)
@@ -123,14 +157,16 @@ class RefineConfig:
 
 PRESETS: dict[str, RefineConfig] = {
     "default": RefineConfig(),
-    "fast": RefineConfig(level_pixels=(4.0, 2.0, 1.0, 0.5, 0.25), max_expansions_per_level=15,
-                         max_expansions=60, score_max_side=120),
-    "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75, 0.375, 0.1875, 0.09375),
-                             max_expansions_per_level=40, max_expansions=280, patience=3, score_max_side=240,
-                             coarse_scale=1.0),
+    # Levenberg-Marquardt from the coarse pose, no lattice search (where each part is needed: benchmarks/).
+    "gradient": RefineConfig(search=False, polish_iterations=12),
+    "fast": RefineConfig(max_expansions_per_level=15, max_expansions=60, score_max_side=120, polish_iterations=4,
+                         polish_max_side=240),
+    "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75), max_expansions_per_level=40, max_expansions=280,
+                             patience=3, score_max_side=240, coarse_scale=1.0, polish_iterations=12,
+                             polish_max_side=640),
     # Emulation of the official scheme: raw-component steps, one fixed level, f = g + h, 399 expansions,
     # L1 cost, no early stop.
-    "paper": RefineConfig(metric="sad", neighbourhood="paper", max_expansions_per_level=399, max_expansions=399,
-                          patience=0, heuristic_weight=1.0, depth_cost=1.0, coarse_scale=1.0,
+    "paper": RefineConfig(metric="sad", neighbourhood="paper", polish=False, max_expansions_per_level=399,
+                          max_expansions=399, patience=0, heuristic_weight=1.0, depth_cost=1.0, coarse_scale=1.0,
                           max_shift=0.5, max_rotation_deg=5.0, acceptance="cost"),
 }

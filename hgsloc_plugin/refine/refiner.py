@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..image import check_size, load_image
+from ..image import check_size, load_image, resize_image
 from ..kernels import RasterConfig
 from ..pose import Pose, rotation_angle_deg
 from ..render import get_renderer
 from ..scene import GaussianScene
 from .config import RefineConfig
+from .polish import PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
 from .trust import Assessment, assess
@@ -50,10 +51,13 @@ class RefineResult:
         confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
         rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
             "trust-region edge", "level inconsistency", "no improvement"), None when accepted or failed.
-        search_pose / search_cost: the search's best pose and its cost, returned or not.
+        search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
+            not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         expansions / renders: search effort; levels: per-level details; seconds: wall time.
         working_set: Gaussians the search rendered (the per-query working set; the whole map when it is off).
+        polish: the Levenberg-Marquardt stages run (``refine/polish.py``: size, passes, last step, the 6x6 JtJ
+            at the solution); empty when off. ``derivative_passes``: their derivative passes in all.
         history: best cost after each expansion (costs of different levels may use different resolutions).
         error: set when the query failed (then ``pose`` is the coarse pose).
     """
@@ -76,6 +80,11 @@ class RefineResult:
     error: str | None = None
     name: str | None = None
     working_set: int = 0
+    polish: list[PolishStats] = field(default_factory=list)
+
+    @property
+    def derivative_passes(self) -> int:
+        return sum(p.passes for p in self.polish)
 
     @classmethod
     def failed(cls, coarse_pose, error: str, name: str | None = None, seconds: float = 0.0) -> RefineResult:
@@ -89,6 +98,7 @@ class RefineResult:
             "rejected": self.rejected, "cost_initial": self.cost_initial,
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
             "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
+            "derivative_passes": self.derivative_passes, "polish": [p.to_dict() for p in self.polish],
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
             "assessment": self.assessment.to_dict() if self.assessment else None,
@@ -115,6 +125,7 @@ class _Plan:
 
     cam_final: Camera
     cam_coarse: Camera
+    cam_polish: Camera
     levels: list[tuple[float, float]]
     depth: float
     max_t: float
@@ -150,6 +161,7 @@ class Refiner:
         cam_final = camera.with_max_side(cfg.score_max_side)
         coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
         cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
+        cam_polish = camera.with_max_side(cfg.polish_max_side)
         depth = median_depth(self.scene, cam_final, coarse)
         if cfg.neighbourhood == "paper":
             levels = [(cfg.paper_step_q, cfg.paper_step_t)]
@@ -157,14 +169,14 @@ class Refiner:
             levels = list(cfg.levels)
         else:
             f = 0.5 * (cam_final.fx + cam_final.fy)
-            levels = [(math.degrees(px / f), px * depth / f) for px in cfg.level_pixels]
+            levels = [(math.degrees(px / f), px * depth / f) for px in cfg.step_pixels]
         if cfg.neighbourhood == "paper":  # raw-component steps: no image-motion scale
             auto_t, auto_r = 0.5 * depth, 10.0
         else:
             auto_t, auto_r = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
         max_t = cfg.max_shift if cfg.max_shift is not None else auto_t
         max_r = cfg.max_rotation_deg if cfg.max_rotation_deg is not None else auto_r
-        return _Plan(cam_final, cam_coarse, levels, depth, max_t, max_r)
+        return _Plan(cam_final, cam_coarse, cam_polish, levels, depth, max_t, max_r)
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None) -> RefineResult:
         """Refine one query.
@@ -192,7 +204,13 @@ class Refiner:
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n)
         scorer.set_query(plan.cam_final, img)
         result.cost_initial = float(scorer([coarse_pose])[0])
-        best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
+        if cfg.search:
+            best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
+        else:
+            best_pose, best_cost, after_coarse = coarse_pose, result.cost_initial, coarse_pose
+        if cfg.polishes:
+            best_pose = self._polish(plan, renderer, img, best_pose, coarse_pose, result)
+            best_cost = float(scorer([best_pose])[0])
         result.search_pose, result.search_cost = best_pose, best_cost
         if cfg.acceptance == "trust" and cfg.neighbourhood == "lattice":
             result.assessment = self._assess(plan, scorer, coarse_pose, after_coarse, best_pose, best_cost,
@@ -224,7 +242,23 @@ class Refiner:
         f = min(cam.fx, cam.fy)
         t = plan.max_t + 2.0 * plan.depth / f
         r = plan.max_r + math.degrees(2.0 / f)
-        return self.renderer.working_set([plan.cam_final, plan.cam_coarse], coarse, t, r)
+        return self.renderer.working_set([plan.cam_final, plan.cam_coarse, plan.cam_polish], coarse, t, r)
+
+    def _polish(self, plan: _Plan, renderer, img: np.ndarray, pose: Pose, coarse: Pose,
+                result: RefineResult) -> Pose:
+        """Levenberg-Marquardt on the cs cost (``refine/polish.py``) at the polish size; without the search
+        (gradient only), coarse to fine over the coarse, final and polish sizes. Appends to ``result.polish``."""
+        cfg = self.config
+        cams = [plan.cam_polish]
+        if not cfg.search:
+            cams = list(dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish]))
+        allowed = self._trust_region(coarse, plan.max_t, plan.max_r)
+        for cam in cams:
+            q = renderer.upload_window_query(resize_image(img, cam.width, cam.height))
+            pose, stats = polish(renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
+                                 allowed=allowed, background=cfg.background, mask_alpha=cfg.mask_alpha)
+            result.polish.append(stats)
+        return pose
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None) -> RefineResult:
         """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""

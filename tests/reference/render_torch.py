@@ -16,15 +16,17 @@ from gsplat.cuda import _torch_impl as gs
 ALPHA_MIN = 1.0 / 255.0
 
 
-def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e10, tile=16):
-    """Project one view. Returns a dict of tensors over the N Gaussians (radius 0 = culled)."""
-    means = torch.from_numpy(scene.means).float()
-    quats = torch.from_numpy(scene.quats).float()
-    scales = torch.from_numpy(scene.scales).float()
-    opac = torch.from_numpy(scene.opacities).float()
+def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e10, tile=16, dtype=torch.float32):
+    """Project one view. Returns a dict of tensors over the N Gaussians (radius 0 = culled).
+
+    ``dtype``: float32 like the kernels, or float64 (for finite differences of the pose)."""
+    means = torch.from_numpy(scene.means).to(dtype)
+    quats = torch.from_numpy(scene.quats).to(dtype)
+    scales = torch.from_numpy(scene.scales).to(dtype)
+    opac = torch.from_numpy(scene.opacities).to(dtype)
     covars, _ = gs._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False, triu=False)
-    vm = torch.from_numpy(viewmat_44).float()[None]
-    K = torch.from_numpy(camera.K).float()[None]
+    vm = torch.from_numpy(viewmat_44).to(dtype)[None]
+    K = torch.from_numpy(camera.K).to(dtype)[None]
     W, H = camera.width, camera.height
     _, means2d, depths, conics, _ = gs._fully_fused_projection(means, covars, vm, K, W, H, eps2d=eps2d,
                                                                 near_plane=near, far_plane=far)
@@ -41,8 +43,8 @@ def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e1
     valid &= (means2d[:, 0] + rx > 0) & (means2d[:, 0] - rx < W) & (means2d[:, 1] + ry > 0) & (means2d[:, 1] - ry < H)
     R = torch.from_numpy(viewmat_44[:3, :3]).double()
     campos = -R.T @ torch.from_numpy(viewmat_44[:3, 3]).double()
-    dirs = (torch.from_numpy(scene.means).double() - campos).float()
-    sh = torch.from_numpy(scene.sh).float()
+    dirs = (torch.from_numpy(scene.means).double() - campos).to(dtype)
+    sh = torch.from_numpy(scene.sh).to(dtype)
     colors = torch.clamp(gs._spherical_harmonics(scene.sh_degree, dirs, sh) + 0.5, min=0.0)
     tx, ty = math.ceil(W / tile), math.ceil(H / tile)
     x0 = torch.clamp(torch.floor((means2d[:, 0] - rx) / tile), 0, tx).long()
@@ -110,19 +112,19 @@ def blend(proj, lists, camera, background=(0.0, 0.0, 0.0), tile=16, alpha_max=0.
     return rgb, alpha_img
 
 
-def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0)):
-    """Full reference render of one pose: (rgb [H, W, 3], alpha [H, W]) float64."""
-    proj = project(scene, camera, pose.matrix())
+def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0), dtype=torch.float32):
+    """Full reference render of one pose: (rgb [H, W, 3], alpha [H, W]) float64 (projection in ``dtype``)."""
+    proj = project(scene, camera, pose.matrix(), dtype=dtype)
     lists = bin_tiles(proj, camera)
     return blend(proj, lists, camera, background)
 
 
-def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alpha: float = 0.0,
-                luminance: bool = False, sigma: float = 1.5, radius: int = 5) -> tuple[float, float]:
-    """Twin of kernels/window.py: (sum over valid pixels of the channel-mean SSIM or cs, valid pixel count).
+def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma: float = 1.5, radius: int = 5,
+               fixed_den: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-pixel channel-mean SSIM or cs [H, W] of tensors r, q [H, W, 3] (differentiable in r).
 
-    Written as a 2D float64 convolution with an explicit (2 radius + 1)^2 Gaussian kernel and replicate padding
-    (the kernel uses two separable float32 passes with clamped coordinates).
+    ``fixed_den``: use this [1, 3, H, W] for cs's denominator s_rr + s_qq + C2 (the Gauss-Newton form with the
+    weights held, as kernels/window_grad.py's JtJ); ``cs_denominator`` gives it.
     """
     import torch.nn.functional as F
 
@@ -130,8 +132,8 @@ def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alph
     g = torch.exp(-0.5 * (x / sigma) ** 2)
     g = g / g.sum()
     k2 = (g[:, None] * g[None, :])[None, None].repeat(3, 1, 1, 1)
-    r = torch.from_numpy(np.asarray(rgb, np.float64)).permute(2, 0, 1)[None]
-    q = torch.from_numpy(np.asarray(query, np.float64)).permute(2, 0, 1)[None]
+    r = r.permute(2, 0, 1)[None]
+    q = q.permute(2, 0, 1)[None]
 
     def filt(t):
         return F.conv2d(F.pad(t, (radius,) * 4, mode="replicate"), k2, groups=3)
@@ -141,9 +143,42 @@ def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alph
     s_qq = (filt(q * q) - mq * mq).clamp(min=0)
     s_rq = filt(r * q) - mr * mq
     c1, c2 = 0.01 ** 2, 0.03 ** 2
-    v = (2 * s_rq + c2) / (s_rr + s_qq + c2)
+    if fixed_den is None:
+        v = (2 * s_rq + c2) / (s_rr + s_qq + c2)
+    else:  # 1 - cs = (s_rr + s_qq - 2 s_rq) / den, with den held
+        v = 1 - (s_rr + s_qq - 2 * s_rq) / fixed_den
     if luminance:
         v = v * (2 * mr * mq + c1) / (mr * mr + mq * mq + c1)
-    v = v.mean(1)[0]
+    return v.mean(1)[0]
+
+
+def cs_denominator(r: torch.Tensor, q: torch.Tensor, sigma: float = 1.5, radius: int = 5) -> torch.Tensor:
+    """cs's denominator s_rr + s_qq + C2 [1, 3, H, W] at the rendering r (no gradient)."""
+    import torch.nn.functional as F
+
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    k2 = (g[:, None] * g[None, :])[None, None].repeat(3, 1, 1, 1)
+
+    def filt(t):
+        return F.conv2d(F.pad(t, (radius,) * 4, mode="replicate"), k2, groups=3)
+
+    with torch.no_grad():
+        rr, qq = r.permute(2, 0, 1)[None], q.permute(2, 0, 1)[None]
+        mr, mq = filt(rr), filt(qq)
+        return (filt(rr * rr) - mr * mr).clamp(min=0) + (filt(qq * qq) - mq * mq).clamp(min=0) + 0.03 ** 2
+
+
+def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alpha: float = 0.0,
+                luminance: bool = False, sigma: float = 1.5, radius: int = 5) -> tuple[float, float]:
+    """Twin of kernels/window.py: (sum over valid pixels of the channel-mean SSIM or cs, valid pixel count).
+
+    Written as a 2D float64 convolution with an explicit (2 radius + 1)^2 Gaussian kernel and replicate padding
+    (the kernel uses two separable float32 passes with clamped coordinates).
+    """
+    r = torch.from_numpy(np.asarray(rgb, np.float64))
+    q = torch.from_numpy(np.asarray(query, np.float64))
+    v = window_map(r, q, luminance, sigma, radius)
     valid = torch.from_numpy(np.asarray(alpha) >= mask_alpha)
     return float(v[valid].sum()), float(valid.sum())

@@ -1,0 +1,127 @@
+"""Levenberg-Marquardt polish of a pose on the ``cs`` cost, from the kernels' analytic pose derivatives.
+
+Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its gradient ``g`` and the
+Gauss-Newton Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves
+``(JtJ + lambda diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a
+trial is kept only when its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks;
+otherwise ``lambda`` grows and the step is re-solved from the same system. It stops on a step below
+``min_step_px`` of image motion, after ``max_failures`` rejected trials in a row, or after ``iterations``
+passes. A trial outside the trust region is not rendered: the damping grows until the step fits (or the
+polish stops, "trust region").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..pose import Pose
+from ..render import Renderer
+
+LAMBDA0 = 1e-3
+LAMBDA_MIN = 1e-7
+LAMBDA_MAX = 1e6
+MAX_OUTSIDE = 12  # trials outside the trust region (each only raises the damping, no render)
+
+
+@dataclass
+class PolishStats:
+    """One polish: where it ran, what it did and the curvature at its result.
+
+    Attributes:
+        width / height: scoring size of the polish.
+        cost_start / cost: ``cs`` cost at that size, before and after.
+        passes: derivative passes (each is one rendering with derivatives, about 3-4 renders' time).
+        accepted_steps: trials that lowered the cost.
+        step_px: image motion of the last accepted step (pixels at the polish size; 0 if none).
+        stopped: "converged" (step below the threshold), "no decrease", "iterations", "trust region".
+        jtj: Gauss-Newton Hessian [6, 6] of the cost at the returned pose, in ``xi = (w [rad], v [scene units])``.
+    """
+
+    width: int
+    height: int
+    cost_start: float
+    cost: float
+    passes: int
+    accepted_steps: int
+    step_px: float
+    stopped: str
+    jtj: np.ndarray
+
+    def to_dict(self) -> dict:
+        d = {k: v for k, v in vars(self).items() if k != "jtj"}
+        d["jtj"] = np.asarray(self.jtj).round(8).tolist()
+        return d
+
+
+def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
+    """Image motion in pixels of an increment ``xi`` [6]: rotation f |w| plus translation f |v| / depth."""
+    return f * float(np.linalg.norm(xi[:3])) + f * float(np.linalg.norm(xi[3:])) / max(depth, 1e-12)
+
+
+def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
+           allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+           min_step_px: float = 0.01, max_failures: int = 3) -> tuple[Pose, PolishStats]:
+    """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
+
+    Args:
+        depth: the scene's median depth in front of the camera (scales translations into pixels).
+        iterations: derivative passes at most (the first, at ``pose``, included).
+        allowed: the trust-region test.
+
+    Returns:
+        (the best pose seen, its stats). The pose's cost is never above the start's.
+    """
+    f = 0.5 * (camera.fx + camera.fy)
+
+    def evaluate(T: Pose):
+        c, g, H = renderer.pose_gradient(camera, [T], qstats, background, mask_alpha)
+        return float(c[0]), g[0], H[0]
+
+    cost, g, H = evaluate(pose)
+    stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0.0, "iterations", H)
+    lam, failures, outside = LAMBDA0, 0, 0
+    while stats.passes < iterations:
+        d = np.diag(H)
+        A = H + lam * np.diag(np.maximum(d, 1e-12 * max(float(d.max()), 1e-30)))
+        try:
+            xi = np.linalg.solve(A, -g)
+        except np.linalg.LinAlgError:
+            xi = np.full(6, np.nan)
+        if not np.all(np.isfinite(xi)):
+            stats.stopped = "no decrease"
+            break
+        motion = step_pixels(xi, f, depth)
+        if motion < min_step_px:
+            stats.stopped = "converged"
+            break
+        trial = pose.perturbed_in_camera(xi[:3], xi[3:])
+        if not allowed(trial):  # shorten the step (more damping) until it stays in the trust region
+            lam = min(lam * 10.0, LAMBDA_MAX)
+            outside += 1
+            if outside > MAX_OUTSIDE or lam >= LAMBDA_MAX:
+                stats.stopped = "trust region"
+                break
+            continue
+        c2, g2, H2 = evaluate(trial)
+        stats.passes += 1
+        if c2 < cost:
+            pose, cost, g, H = trial, c2, g2, H2
+            stats.accepted_steps += 1
+            stats.step_px = motion
+            lam = max(lam * 0.1, LAMBDA_MIN)
+            failures = 0
+        else:
+            lam = min(lam * 10.0, LAMBDA_MAX)
+            failures += 1
+            if failures >= max_failures:
+                stats.stopped = "no decrease"
+                break
+    stats.cost, stats.jtj = cost, H
+    if not math.isfinite(stats.cost):
+        stats.stopped = "no decrease"
+    return pose, stats

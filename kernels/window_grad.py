@@ -1,0 +1,182 @@
+"""Gradient and Gauss-Newton Hessian of the ``cs`` cost with respect to the pose, from the derivative images.
+
+The cost (``kernels/window.py``) is ``1 - mean cs`` over valid pixels p and channels c. Per pixel and channel,
+with d = r - q and the window weights w_pk (separable Gaussian, clamped border):
+
+    1 - cs_p = N_p / D_p,   N_p = s_rr + s_qq - 2 s_rq = sum_k w_pk (d_k - dbar_p)^2,   D_p = s_rr + s_qq + C2
+
+so the cost is a weighted least-squares sum of the windowed zero-mean difference, with the per-pixel weight
+1 / D_p: the iteratively reweighted least-squares (IRLS) form. With the derivative images J_k = dr_k / dxi
+[6] (``pose_grad.blend_grad``) and their windowed means Jbar_p:
+
+    dN_p = 2 (sum_k w_pk d_k J_k - dbar_p Jbar_p),   dD_p = 2 (sum_k w_pk r_k J_k - m_p Jbar_p)
+    grad = 1/(3n) sum_pc (dN_p / D_p - N_p dD_p / D_p^2)                         (exact gradient of the cost)
+    JtJ  = 1/(3n) sum_pc 2 (sum_k w_pk J_k J_k^T - Jbar_p Jbar_p^T) / D_p         (Gauss-Newton, weights fixed)
+
+JtJ is the exact Hessian at a zero residual. The sums over k of per-pixel weights are regrouped with the
+window's transpose: ``sum_p A_p sum_k w_pk X_k = sum_k X_k (W^T A)_k``, so only scalar weight images are
+filtered (``filter_kernel(transpose=True)``) and the 6x6 products are formed once per pixel.
+Everything stays on the device; rows are summed per pose in float64 by ``blend.reduce_kernel`` (fixed order).
+Reference twin: ``tests/test_pose_grad.py`` (central differences of the Taichi cost).
+"""
+
+import functools
+
+import taichi as ti
+
+from .pose_grad import NXI
+from .window import C2, RADIUS, window_weights
+
+_W = window_weights()
+
+NH = NXI * (NXI + 1) // 2  # upper triangle of JtJ, row-major
+NSYS = NH + NXI  # per-row record: JtJ triangle, then the gradient
+_CUM = [sum(_W[:m + 1]) for m in range(2 * RADIUS + 1)]  # sum_{j <= m} w_j
+_TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
+
+
+@functools.cache
+def cs_terms_kernel():
+    """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal_kernel``):
+    weights [B, H, W, 6] (A = 1/D, B = N/D^2 per channel, 0 on invalid pixels), means [B, H, W, 6]
+    (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, 2] = (sum of the channel-mean cs, valid pixels):
+    the same numbers as ``window.vertical_cost_kernel(False)``."""
+
+    @ti.kernel
+    def cs_terms(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                 alpha: ti.types.ndarray(dtype=ti.f32, ndim=3), mask_alpha: ti.f32, num_poses: ti.i32,
+                 weights: ti.types.ndarray(dtype=ti.f32, ndim=4), means: ti.types.ndarray(dtype=ti.f32, ndim=4),
+                 rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+        H = hbuf.shape[1]
+        W = hbuf.shape[2]
+        for b, y in ti.ndrange(num_poses, H):
+            tot = 0.0
+            cnt = 0.0
+            for x in range(W):
+                valid = alpha[b, y, x] >= mask_alpha
+                v = 0.0
+                for c in ti.static(range(3)):
+                    m = 0.0
+                    m2 = 0.0
+                    mrq = 0.0
+                    for i in ti.static(range(2 * RADIUS + 1)):
+                        yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
+                        w = ti.static(_W[i])
+                        m += w * hbuf[b, yy, x, c, 0]
+                        m2 += w * hbuf[b, yy, x, c, 1]
+                        mrq += w * hbuf[b, yy, x, c, 2]
+                    mq = qstats[y, x, c, 0]
+                    s_rr = ti.max(m2 - m * m, 0.0)
+                    s_rq = mrq - m * mq
+                    den = s_rr + qstats[y, x, c, 1] + C2
+                    cs = (2.0 * s_rq + C2) / den
+                    v += cs
+                    a = 0.0
+                    bw = 0.0
+                    if valid:
+                        a = 1.0 / den
+                        bw = (1.0 - cs) / den
+                    weights[b, y, x, 2 * c] = a
+                    weights[b, y, x, 2 * c + 1] = bw
+                    means[b, y, x, 2 * c] = m
+                    means[b, y, x, 2 * c + 1] = m - mq
+                if valid:
+                    tot += v / 3.0
+                    cnt += 1.0
+            rows[b, y, 0, 0] = tot
+            rows[b, y, 0, 1] = cnt
+
+    return cs_terms
+
+
+@functools.cache
+def filter_kernel(axis: int, transpose: bool, channels: int):
+    """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: rows / y, 1: columns /
+    x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each input pixel
+    gives to the outputs: at the borders the clamped taps' weights add up)."""
+
+    @ti.func
+    def load(src: ti.template(), b, y, x, q):
+        v = ti.Vector([0.0] * channels)
+        for c in ti.static(range(channels)):
+            if ti.static(axis == 1):
+                v[c] = src[b, y, q, c]
+            else:
+                v[c] = src[b, q, x, c]
+        return v
+
+    @ti.kernel
+    def filt(src: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
+             dst: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+        H = src.shape[1]
+        W = src.shape[2]
+        L = W if ti.static(axis == 1) else H
+        for b, y, x in ti.ndrange(num_poses, H, W):
+            pos = x if ti.static(axis == 1) else y
+            acc = ti.Vector([0.0] * channels)
+            if ti.static(not transpose):
+                for j in ti.static(range(2 * RADIUS + 1)):
+                    q = ti.min(ti.max(pos + j - RADIUS, 0), L - 1)
+                    acc += ti.static(_W[j]) * load(src, b, y, x, q)
+            else:
+                if L == 1:
+                    acc = load(src, b, y, x, 0)
+                elif pos == 0:  # every tap that clamps to 0: from q <= RADIUS, taps j <= RADIUS - q
+                    for q in ti.static(range(RADIUS + 1)):
+                        if q < L:
+                            acc += ti.static(_CUM[RADIUS - q]) * load(src, b, y, x, q)
+                elif pos == L - 1:  # taps that clamp to L - 1: from q = L - 1 - s, taps j >= s + RADIUS
+                    for s in ti.static(range(RADIUS + 1)):
+                        q = L - 1 - s
+                        if q >= 0:
+                            acc += ti.static(_TAIL[s + RADIUS]) * load(src, b, y, x, q)
+                else:
+                    for j in ti.static(range(2 * RADIUS + 1)):
+                        q = pos - j + RADIUS
+                        if 0 <= q and q < L:
+                            acc += ti.static(_W[j]) * load(src, b, y, x, q)
+            for c in ti.static(range(channels)):
+                dst[b, y, x, c] = acc[c]
+
+    return filt
+
+
+@functools.cache
+def system_kernel():
+    """Per-row sums of the JtJ triangle and the gradient, unscaled (``2 / (3 n)`` is applied by the caller):
+    rows [B, H, 1, NSYS].
+
+    Inputs: rgb [B, H, W, 3], qstats [H, W, 3, NQ] (the query pixel is field 2), drgb and its windowed mean
+    jbar [B, H, W, 3 * 6], weights and their transposed window what [B, H, W, 6], means [B, H, W, 6].
+    """
+
+    @ti.kernel
+    def system(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
+               drgb: ti.types.ndarray(dtype=ti.f32, ndim=4), jbar: ti.types.ndarray(dtype=ti.f32, ndim=4),
+               weights: ti.types.ndarray(dtype=ti.f32, ndim=4), what: ti.types.ndarray(dtype=ti.f32, ndim=4),
+               means: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
+               rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+        H = rgb.shape[1]
+        W = rgb.shape[2]
+        for b, y in ti.ndrange(num_poses, H):
+            acc = ti.Vector([0.0] * NSYS)
+            for x in range(W):
+                for c in ti.static(range(3)):
+                    Jk = ti.Vector([drgb[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                    Jb = ti.Vector([jbar[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                    ah = what[b, y, x, 2 * c]
+                    bh = what[b, y, x, 2 * c + 1]
+                    a = weights[b, y, x, 2 * c]
+                    bw = weights[b, y, x, 2 * c + 1]
+                    r = rgb[b, y, x, c]
+                    d = r - qstats[y, x, c, 2]
+                    gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
+                    for i in ti.static(range(NXI)):
+                        for j in ti.static(range(i, NXI)):
+                            idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
+                            acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
+                        acc[NH + i] += gk[i]
+            for s in ti.static(range(NSYS)):
+                rows[b, y, 0, s] = acc[s]
+
+    return system

@@ -95,6 +95,21 @@ def horizontal_kernel():
     return horizontal
 
 
+@ti.func
+def vertical_moments(hbuf: ti.template(), b, y, x, c, H):
+    """The vertical window pass at one pixel and channel: windowed r, r^2 and r q (from ``horizontal``)."""
+    m = 0.0
+    m2 = 0.0
+    mrq = 0.0
+    for i in ti.static(range(2 * RADIUS + 1)):
+        yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
+        w = ti.static(_W[i])
+        m += w * hbuf[b, yy, x, c, 0]
+        m2 += w * hbuf[b, yy, x, c, 1]
+        mrq += w * hbuf[b, yy, x, c, 2]
+    return m, m2, mrq
+
+
 @functools.cache
 def vertical_cost_kernel(with_luminance: bool):
     """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 1, 2] = (sum of values, pixels),
@@ -113,15 +128,7 @@ def vertical_cost_kernel(with_luminance: bool):
                 if alpha[b, y, x] >= mask_alpha:
                     v = 0.0
                     for c in ti.static(range(3)):
-                        m = 0.0
-                        m2 = 0.0
-                        mrq = 0.0
-                        for i in ti.static(range(2 * RADIUS + 1)):
-                            yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
-                            w = ti.static(_W[i])
-                            m += w * hbuf[b, yy, x, c, 0]
-                            m2 += w * hbuf[b, yy, x, c, 1]
-                            mrq += w * hbuf[b, yy, x, c, 2]
+                        m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
                         mq = qstats[y, x, c, 0]
                         s_rr = ti.max(m2 - m * m, 0.0)
                         s_rq = mrq - m * mq

@@ -25,7 +25,7 @@ import functools
 import taichi as ti
 
 from .pose_grad import NXI
-from .window import C2, RADIUS, window_weights
+from .window import C2, RADIUS, vertical_moments, window_weights
 
 _W = window_weights()
 
@@ -56,15 +56,7 @@ def cs_terms_kernel():
                 valid = alpha[b, y, x] >= mask_alpha
                 v = 0.0
                 for c in ti.static(range(3)):
-                    m = 0.0
-                    m2 = 0.0
-                    mrq = 0.0
-                    for i in ti.static(range(2 * RADIUS + 1)):
-                        yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
-                        w = ti.static(_W[i])
-                        m += w * hbuf[b, yy, x, c, 0]
-                        m2 += w * hbuf[b, yy, x, c, 1]
-                        mrq += w * hbuf[b, yy, x, c, 2]
+                    m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
                     mq = qstats[y, x, c, 0]
                     s_rr = ti.max(m2 - m * m, 0.0)
                     s_rq = mrq - m * mq

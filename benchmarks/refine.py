@@ -10,7 +10,8 @@ Same queries and priors for every mode, one run. Cases, real photographs first:
 Rows: median (worst) error of the prior and of the returned pose, queries made worse (> 1 cm or > 0.5 deg),
 accepted, lattice renders, derivative passes, render-equivalents (renders + passes x the measured cost of a
 pass in renders: one pose of a 12-pose scoring batch at the search's final size, same run), seconds per query.
-``truth`` rows start at the true pose: where each map's own cost minimum lies (its floor).
+``candidate``: the search's (+ polish's) pose before the acceptance rule. ``truth`` rows start at the true
+pose: their candidate is where each map's own cost minimum lies (its floor).
 A final sweep measures where gradient only stops converging (room; converged = < 1 cm and < 0.5 deg).
 """
 
@@ -80,10 +81,10 @@ class PassCost:
 
 
 def evaluate(refiner, cam, gts, imgs, priors, scale, cost: PassCost) -> dict:
-    e0, e1, ren, passes, req, sec, acc = [], [], [], [], [], [], 0
+    e0, e1, es, ren, passes, req, sec, acc = [], [], [], [], [], [], [], 0
     for k, (img, gt, prior) in enumerate(zip(imgs, gts, priors)):
         r = refiner.refine(img, cam, prior)
-        for lst, p in ((e0, prior), (e1, r.pose)):
+        for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
             t, a = p.errors_to(gt)
             lst.append((t * scale[k], a))
         ren.append(r.renders)
@@ -91,9 +92,9 @@ def evaluate(refiner, cam, gts, imgs, priors, scale, cost: PassCost) -> dict:
         req.append(cost.render_equivalents(r))
         sec.append(r.seconds)
         acc += r.accepted
-    e0, e1 = np.array(e0), np.array(e1)
+    e0, e1, es = np.array(e0), np.array(e1), np.array(es)
     worse = int(((e1[:, 0] > e0[:, 0] + 1.0) | (e1[:, 1] > e0[:, 1] + 0.5)).sum())
-    return dict(e0=e0, e1=e1, worse=worse, acc=acc, n=len(gts), renders=np.median(ren), passes=np.median(passes),
+    return dict(e0=e0, e1=e1, es=es, worse=worse, acc=acc, n=len(gts), renders=np.median(ren), passes=np.median(passes),
                 req=np.median(req), sec=np.median(sec))
 
 
@@ -102,12 +103,12 @@ def fmt(e: np.ndarray) -> str:
 
 
 def row(mode: str, prior: str, m: dict) -> str:
-    return (f"| {mode} | {prior} | {fmt(m['e0'])} | {fmt(m['e1'])} | {m['worse']} | {m['acc']} / {m['n']} | "
-            f"{m['renders']:.0f} | {m['passes']:.0f} | {m['req']:.0f} | {m['sec']:.2f} |")
+    return (f"| {mode} | {prior} | {fmt(m['e0'])} | {fmt(m['es'])} | {fmt(m['e1'])} | {m['worse']} | "
+            f"{m['acc']} / {m['n']} | {m['renders']:.0f} | {m['passes']:.0f} | {m['req']:.0f} | {m['sec']:.2f} |")
 
 
-HEADER = ["| mode | prior | prior median (worst) t / R | returned median (worst) | worse | accepted | renders | "
-          "derivative passes | render-equivalents | s / query |", "|---|---|---|---|---|---|---|---|---|---|"]
+HEADER = ["| mode | prior | prior median (worst) t / R | candidate | returned median (worst) | worse | accepted | "
+          "renders | derivative passes | render-equivalents | s / query |", "|" + "---|" * 11]
 
 
 def priors_for(gts, scale, seed=0) -> dict:

@@ -5,7 +5,7 @@ Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego-que
 Same queries and priors for every mode, one run. Cases, real photographs first:
 - ``snow``: 6 real phone photos against a 3DGS fitted to other photos (an imperfect map; ../shared/data/snow);
   errors in 7-Scenes-equivalent cm (% of the query's median depth x 2) and degrees.
-- ``lego``: held-out renders whose pixels no 3DGS made (../shared/data/lego); scene units x 100.
+- ``lego``: held-out renders whose pixels no 3DGS made (../shared/data/lego); 7-Scenes-equivalent cm too.
 - the demo room, photo-degraded renderings at 320x240; cm.
 Rows: median (worst) error of the prior and of the returned pose, queries made worse (> 1 cm or > 0.5 deg),
 accepted, lattice renders, derivative passes, render-equivalents (renders + passes x the measured cost of a
@@ -145,32 +145,43 @@ def main() -> None:
     ap.add_argument("--paper-queries", type=int, default=2)
     ap.add_argument("--lego-queries", type=int, default=6)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "refine.md"))
+    ap.add_argument("--cases", nargs="+", default=["snow", "lego", "room", "paper", "sweep"],
+                    choices=["snow", "lego", "room", "paper", "sweep"])
     a = ap.parse_args()
     hp.init()
     t_start = time.time()
     lines: list[str] = []
-    snow = load_dataset("snow")
+    snow = load_dataset("snow") if "snow" in a.cases else None
     if snow is not None:
         cam, scene, qs, bg = snow
         qs = qs[: a.queries]
         run_case("snow (real photos; 7-Scenes-equivalent cm)", scene, cam, [q[1] for q in qs], [q[2] for q in qs],
                  [200.0 / q[3] for q in qs], bg, lines)
-    lego = load_dataset("lego")
+    lego = load_dataset("lego") if "lego" in a.cases else None
     if lego is not None and a.lego_queries > 0:
         cam, scene, qs, bg = lego
         qs = qs[: a.lego_queries]
-        run_case("lego (held-out renders, white background; units x 100)", scene, cam, [q[1] for q in qs],
-                 [q[2] for q in qs], [100.0] * len(qs), bg, lines)
+        run_case("lego (held-out renders, white background; 7-Scenes-equivalent cm)", scene, cam, [q[1] for q in qs],
+                 [q[2] for q in qs], [200.0 / q[3] for q in qs], bg, lines)
     scene = make_room_scene()
     cam = QUERY_CAMERA
     gts = query_poses(a.queries, seed=1)
     imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
     modes = dict(MODES)
     paper = hp.RefineConfig.preset("paper", paper_step_q=2e-4, paper_step_t=2e-3, score_max_side=160)
-    run_case("demo room (photo-degraded renders; cm)", scene, cam, gts, imgs, [100.0] * len(gts), (0.0, 0.0, 0.0),
-             lines, modes)
-    lines += [f"\n### demo room, emulated official scheme ({a.paper_queries} queries)\n"] + HEADER
+    if "room" in a.cases:
+        run_case("demo room (photo-degraded renders; cm)", scene, cam, gts, imgs, [100.0] * len(gts),
+                 (0.0, 0.0, 0.0), lines, modes)
     cost = PassCost(scene, cam, gts[0], imgs[0], hp.RefineConfig())
+    if "paper" in a.cases:
+        paper_rows(a, scene, cam, gts, imgs, paper, cost, lines)
+    if "sweep" in a.cases:
+        sweep_rows(scene, cam, gts, imgs, cost, lines)
+    write(a.out, lines, t_start)
+
+
+def paper_rows(a, scene, cam, gts, imgs, paper, cost, lines) -> None:
+    lines += [f"\n### demo room, emulated official scheme ({a.paper_queries} queries)\n"] + HEADER
     refiner = hp.HGSLocPlugin(scene, paper)
     n = a.paper_queries
     for cm, deg in NOISE[:2]:
@@ -179,6 +190,9 @@ def main() -> None:
         lines.append(row("paper emulation", f"{cm:g} cm / {deg:g} deg",
                          evaluate(refiner, cam, gts[:n], imgs[:n], ps, [100.0] * n, cost)))
         print(lines[-1], flush=True)
+
+
+def sweep_rows(scene, cam, gts, imgs, cost, lines) -> None:
     lines += ["\n### where gradient only stops converging (demo room; converged: < 1 cm and < 0.5 deg)\n",
               "| prior | gradient only: converged | median error | search + polish: converged | median error |",
               "|---|---|---|---|---|"]
@@ -193,12 +207,15 @@ def main() -> None:
             cells += [f"{ok.sum()} / {len(ok)}", f"{np.median(m['e1'][:, 0]):.2f} / {np.median(m['e1'][:, 1]):.3f}"]
         lines.append(f"| {cm:g} cm / {deg:g} deg | " + " | ".join(cells) + " |")
         print(lines[-1], flush=True)
+
+
+def write(out, lines, t_start) -> None:
     text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 1)[1].split("Usage")[0].strip() +
             f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines) + "\n")
-    tmp = Path(a.out).with_suffix(".tmp")
+    tmp = Path(out).with_suffix(".tmp")
     tmp.write_text(text)
-    tmp.replace(a.out)
-    print(f"wrote {a.out}")
+    tmp.replace(out)
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -210,7 +210,7 @@ def sweep_rows(scene, cam, gts, imgs, cost, lines) -> None:
 
 
 def write(out, lines, t_start) -> None:
-    text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 1)[1].split("Usage")[0].strip() +
+    text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 2)[2].strip() +
             f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines) + "\n")
     tmp = Path(out).with_suffix(".tmp")
     tmp.write_text(text)

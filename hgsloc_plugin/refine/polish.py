@@ -1,13 +1,13 @@
 """Levenberg-Marquardt polish of a pose on the ``cs`` cost, from the kernels' analytic pose derivatives.
 
-Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its gradient ``g`` and the
-Gauss-Newton Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves
-``(JtJ + lambda diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a
-trial is kept only when its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks;
-otherwise ``lambda`` grows and the step is re-solved from the same system. It stops on a step below
-``min_step_px`` of image motion, after ``max_failures`` rejected trials in a row, or after ``iterations``
-passes. A trial outside the trust region is not rendered: the damping grows until the step fits (or the
-polish stops, "trust region").
+Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its gradient ``g`` and the Gauss-Newton
+Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves ``(JtJ + lambda
+diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a trial is kept only when
+its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks; otherwise ``lambda`` grows
+and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion or a kept
+step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected trials in a row, or
+after ``iterations`` passes. A trial outside the trust region is not rendered: the damping grows until the step fits
+(or the polish stops, "trust region").
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from ..render import Renderer
 LAMBDA0 = 1e-3
 LAMBDA_MIN = 1e-7
 LAMBDA_MAX = 1e6
+MIN_DECREASE = 1e-4  # a kept step that lowers the cost by less than this fraction ends the polish
 MAX_OUTSIDE = 12  # trials outside the trust region (each only raises the damping, no render)
 
 
@@ -110,11 +111,15 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
+            negligible = cost - c2 < MIN_DECREASE * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.accepted_steps += 1
             stats.step_px = motion
             lam = max(lam * 0.1, LAMBDA_MIN)
             failures = 0
+            if negligible:
+                stats.stopped = "converged"
+                break
         else:
             lam = min(lam * 10.0, LAMBDA_MAX)
             failures += 1

@@ -46,7 +46,8 @@ class RefineResult:
     Attributes:
         pose: refined world-to-camera pose (the coarse pose when ``accepted`` is False).
         initial_pose: the coarse pose given.
-        cost_initial / cost_final: heuristic at the final scoring resolution, coarse vs returned pose.
+        cost_initial / cost_final: heuristic of the coarse vs the returned pose at the size where the acceptance
+            rule judged: the polish's when it runs (``polish_max_side``), else the final scoring size.
         accepted: the search's pose passed the acceptance rule (``RefineConfig.acceptance``) and is returned.
         confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
         rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
@@ -208,13 +209,20 @@ class Refiner:
             best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
         else:
             best_pose, best_cost, after_coarse = coarse_pose, result.cost_initial, coarse_pose
+        judge_cam = plan.cam_final
         if cfg.polishes:
             best_pose = self._polish(plan, renderer, img, best_pose, coarse_pose, result)
+            # the rule judges where the candidate is a minimum: at the polish's size (a pose polished at the
+            # query's own pixels is not the minimum of the 200 px cost, whose one-pixel moves may then descend)
+            judge_cam = plan.cam_polish
+            if judge_cam != plan.cam_final:
+                scorer.set_query(judge_cam, img)
+                result.cost_initial = float(scorer([coarse_pose])[0])
             best_cost = float(scorer([best_pose])[0])
         result.search_pose, result.search_cost = best_pose, best_cost
         if cfg.acceptance == "trust" and cfg.neighbourhood == "lattice":
-            result.assessment = self._assess(plan, scorer, coarse_pose, after_coarse, best_pose, best_cost,
-                                             result.cost_initial)
+            result.assessment = self._assess(plan, judge_cam, scorer, coarse_pose, after_coarse, best_pose,
+                                             best_cost, result.cost_initial)
             result.rejected = result.assessment.rejected
             result.confidence = result.assessment.confidence
         elif not best_cost < result.cost_initial:
@@ -275,10 +283,9 @@ class Refiner:
         """The larger of centre shift / max_t and rotation / max_r between two poses."""
         return max(float(np.linalg.norm(a.centre() - b.centre())) / max_t, rotation_angle_deg(a.R, b.R) / max_r)
 
-    def _assess(self, plan: _Plan, scorer: Scorer, coarse: Pose, after_coarse: Pose, best: Pose, best_cost: float,
-                cost_initial: float) -> Assessment:
-        """Score the 12 one-pixel moves around ``best`` (final resolution) and apply ``trust.assess``."""
-        cam = plan.cam_final
+    def _assess(self, plan: _Plan, cam: Camera, scorer: Scorer, coarse: Pose, after_coarse: Pose, best: Pose,
+                best_cost: float, cost_initial: float) -> Assessment:
+        """Score the 12 one-pixel moves around ``best`` at ``cam``'s size (the scorer's) and apply ``trust.assess``."""
         f = 0.5 * (cam.fx + cam.fy)
         space = LatticeSpace(best, 1.0 / f, plan.depth / f, plan.depth if self.config.pivot else 0.0)
         moves = space.neighbours((0,) * 6)

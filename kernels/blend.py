@@ -40,16 +40,20 @@ def accumulate_stats(acc: ti.template(), rgb, target: ti.template(), py, px):
         acc[ti.static(Stat.at(c, Stat.SRQ))] += r * q
 
 
+@ti.func
+def tile_range(b, t_id, tile_start: ti.template(), isect_base: ti.template()):
+    """[start, end) of tile ``t_id``'s depth-ordered Gaussian list of pose ``b`` in ``isect``."""
+    base = ti.cast(isect_base[b], ti.i32)
+    return base + tile_start[b, t_id], base + tile_start[b, t_id + 1]
+
+
 def _make_shade(config: RasterConfig):
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
 
     @ti.func
     def shade(b, px, py, tiles_x, packed: ti.template(), tile_start: ti.template(), isect: ti.template(),
               isect_base: ti.template()):
-        t_id = (py // tile) * tiles_x + px // tile
-        base = ti.cast(isect_base[b], ti.i32)
-        start = base + tile_start[b, t_id]
-        end = base + tile_start[b, t_id + 1]
+        start, end = tile_range(b, (py // tile) * tiles_x + px // tile, tile_start, isect_base)
         fx = ti.cast(px, ti.f32) + 0.5
         fy = ti.cast(py, ti.f32) + 0.5
         T = 1.0
@@ -192,9 +196,7 @@ def _make_splat_tile(config: RasterConfig):
             row_left[r] = x1 - x0 if y0 + r < y1 else 0
         npix = (x1 - x0) * (y1 - y0)
         ndone = 0
-        base = ti.cast(isect_base[b], ti.i32)
-        start = base + tile_start[b, t]
-        end = base + tile_start[b, t + 1]
+        start, end = tile_range(b, t, tile_start, isect_base)
         for k in range(start, end):
             if ndone >= npix:
                 break

@@ -29,8 +29,10 @@ import functools
 
 import taichi as ti
 
+from .blend import tile_range
 from .config import RasterConfig
 from .layout import Rec
+from .projection import camera_covariance, clamped_jacobian, jacobian_clamps, view_rt
 
 NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in dpacked (times NXI)
@@ -80,33 +82,20 @@ def projection_grad_kernel(config: RasterConfig):
         fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
         wf = ti.cast(width, ti.f32)
         hf = ti.cast(height, ti.f32)
-        tan_fovx = 0.5 * wf / fx
-        tan_fovy = 0.5 * hf / fy
-        lim_x_pos = (wf - cx) / fx + 0.3 * tan_fovx
-        lim_x_neg = cx / fx + 0.3 * tan_fovx
-        lim_y_pos = (hf - cy) / fy + 0.3 * tan_fovy
-        lim_y_neg = cy / fy + 0.3 * tan_fovy
+        lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
         for b, i in ti.ndrange(num_poses, n):
             if ntiles[b, i] == 0:
                 continue
-            R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
-            t = ti.Vector([viewmats[b, 0, 3], viewmats[b, 1, 3], viewmats[b, 2, 3]])
+            R, t = view_rt(viewmats, b)
             p = R @ ti.Vector([means[i, 0], means[i, 1], means[i, 2]]) + t
-            S = ti.Matrix([[cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]],
-                           [cov3d[i, 1], cov3d[i, 3], cov3d[i, 4]],
-                           [cov3d[i, 2], cov3d[i, 4], cov3d[i, 5]]])
-            Sc = R @ S @ R.transpose()
+            Sc = camera_covariance(cov3d, i, R)
+            J, ux, vy = clamped_jacobian(p, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
             z = p[2]
             rz = 1.0 / z
-            u = p[0] * rz
-            v = p[1] * rz
-            ux = ti.min(lim_x_pos, ti.max(-lim_x_neg, u))
-            vy = ti.min(lim_y_pos, ti.max(-lim_y_neg, v))
-            free_x = 1.0 if ux == u else 0.0  # unclamped: tx = x; clamped: tx = z * limit
-            free_y = 1.0 if vy == v else 0.0
+            free_x = 1.0 if ux == p[0] * rz else 0.0  # unclamped: tx = x; clamped: tx = z * limit
+            free_y = 1.0 if vy == p[1] * rz else 0.0
             tx = z * ux
             ty = z * vy
-            J = ti.Matrix([[fx * rz, 0.0, -fx * tx * rz * rz], [0.0, fy * rz, -fy * ty * rz * rz]])
             cov2 = J @ Sc @ J.transpose()
             c00 = cov2[0, 0] + eps2d
             c01 = cov2[0, 1]
@@ -163,10 +152,7 @@ def blend_grad_kernel(config: RasterConfig):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         for b, py, px in ti.ndrange(num_poses, H, W):
-            t_id = (py // tile) * tiles_x + px // tile
-            base = ti.cast(isect_base[b], ti.i32)
-            start = base + tile_start[b, t_id]
-            end = base + tile_start[b, t_id + 1]
+            start, end = tile_range(b, (py // tile) * tiles_x + px // tile, tile_start, isect_base)
             fx = ti.cast(px, ti.f32) + 0.5
             fy = ti.cast(py, ti.f32) + 0.5
             T = 1.0

@@ -15,6 +15,47 @@ from .layout import Rec
 from .sh import make_sh_func
 
 
+@ti.func
+def jacobian_clamps(fx, fy, cx, cy, wf, hf):
+    """Limits of x / z and y / z in the projection Jacobian (image bounds plus 0.3 of the half field of view):
+    (x_pos, x_neg, y_pos, y_neg)."""
+    tan_fovx = 0.5 * wf / fx
+    tan_fovy = 0.5 * hf / fy
+    return ((wf - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx, (hf - cy) / fy + 0.3 * tan_fovy,
+            cy / fy + 0.3 * tan_fovy)
+
+
+@ti.func
+def view_rt(viewmats: ti.template(), b):
+    """Rotation [3, 3] and translation [3] of pose ``b`` from viewmats [B, 3, 4]."""
+    R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
+    t = ti.Vector([viewmats[b, 0, 3], viewmats[b, 1, 3], viewmats[b, 2, 3]])
+    return R, t
+
+
+@ti.func
+def camera_covariance(cov3d: ti.template(), i, R):
+    """Gaussian ``i``'s covariance in the camera frame, R S R^T, from its upper triangle cov3d [N, 6]."""
+    S = ti.Matrix([[cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]],
+                   [cov3d[i, 1], cov3d[i, 3], cov3d[i, 4]],
+                   [cov3d[i, 2], cov3d[i, 4], cov3d[i, 5]]])
+    return R @ S @ R.transpose()
+
+
+@ti.func
+def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
+    """The projection Jacobian [2, 3] at camera-frame point p_c with x / z and y / z clamped (gsplat's rule);
+    also returns the clamped x / z and y / z."""
+    z = p_c[2]
+    rz = 1.0 / z
+    ux = ti.min(lx_pos, ti.max(-lx_neg, p_c[0] * rz))
+    vy = ti.min(ly_pos, ti.max(-ly_neg, p_c[1] * rz))
+    tx = z * ux
+    ty = z * vy
+    J = ti.Matrix([[fx * rz, 0.0, -fx * tx * rz * rz], [0.0, fy * rz, -fy * ty * rz * rz]])
+    return J, ux, vy
+
+
 @functools.cache
 def projection_kernel(config: RasterConfig, sh_degree: int):
     """Compiled projection kernel for one config and SH degree.
@@ -60,20 +101,14 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         hf = ti.cast(height, ti.f32)
         tiles_x = (width + tile - 1) // tile
         tiles_y = (height + tile - 1) // tile
-        tan_fovx = 0.5 * wf / fx
-        tan_fovy = 0.5 * hf / fy
-        lim_x_pos = (wf - cx) / fx + 0.3 * tan_fovx
-        lim_x_neg = cx / fx + 0.3 * tan_fovx
-        lim_y_pos = (hf - cy) / fy + 0.3 * tan_fovy
-        lim_y_neg = cy / fy + 0.3 * tan_fovy
+        lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
         # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
         early_a, early_b = extent[0], extent[1]
         x_lo, x_hi = -cx / fx, (wf - cx) / fx
         y_lo, y_hi = -cy / fy, (hf - cy) / fy
         for b, i in ti.ndrange(num_poses, n):
             ntiles[b, i] = 0
-            R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
-            t = ti.Vector([viewmats[b, 0, 3], viewmats[b, 1, 3], viewmats[b, 2, 3]])
+            R, t = view_rt(viewmats, b)
             p_w = ti.Vector([means[i, 0], means[i, 1], means[i, 2]])
             p_c = R @ p_w + t
             z = p_c[2]
@@ -85,14 +120,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
             v0 = p_c[1] * rz0
             if u0 - ext > x_hi or u0 + ext < x_lo or v0 - ext > y_hi or v0 + ext < y_lo:
                 continue  # the box below would miss the image too
-            S = ti.Matrix([[cov3d[i, 0], cov3d[i, 1], cov3d[i, 2]],
-                           [cov3d[i, 1], cov3d[i, 3], cov3d[i, 4]],
-                           [cov3d[i, 2], cov3d[i, 4], cov3d[i, 5]]])
-            Sc = R @ S @ R.transpose()
+            Sc = camera_covariance(cov3d, i, R)
+            J, _, _ = clamped_jacobian(p_c, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
             rz = 1.0 / z
-            tx = z * ti.min(lim_x_pos, ti.max(-lim_x_neg, p_c[0] * rz))
-            ty = z * ti.min(lim_y_pos, ti.max(-lim_y_neg, p_c[1] * rz))
-            J = ti.Matrix([[fx * rz, 0.0, -fx * tx * rz * rz], [0.0, fy * rz, -fy * ty * rz * rz]])
             cov2 = J @ Sc @ J.transpose()
             c00 = cov2[0, 0] + eps2d
             c01 = cov2[0, 1]

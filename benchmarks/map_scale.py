@@ -7,11 +7,13 @@ shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the un
 is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
 process so that its peak memory (max RSS) is its own. Paths:
 - ``whole map``: every render projects, sorts and blends the whole map (``RefineConfig(working_set=False)``);
-- ``working set``: the Gaussians some pose of the query's trust region can see, selected once per query
-  (``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``, 300k).
+- ``working set``: the Gaussians some pose near the poses scored can see (``working_set.WorkingSet``: a region
+  of ``working_set_pixels`` around the first poses scored, selected again when the search leaves it;
+  ``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``).
 
 Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
-the working-set row includes nothing of the selection, which is counted in s / query), working-set size,
+the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
+largest selection of a query, median) and selections per query,
 renders and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
 """
 
@@ -61,7 +63,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     for _ in range(reps):
         renderer.render_full(plan.cam_final, poses)
     ms = 1000 * (time.perf_counter() - t0) / (reps * len(poses))
-    e0, e1, ren, sec, wset = [], [], [], [], []
+    e0, e1, ren, sec, wset, nsel = [], [], [], [], [], []
     for img, gt, prior in zip(imgs, gts, priors):
         r = refiner.refine(img, cam, prior)
         e0.append(prior.errors_to(gt))
@@ -69,9 +71,11 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
         ren.append(r.renders)
         sec.append(r.seconds)
         wset.append(r.working_set)
+        nsel.append(r.working_set_selections)
     e0, e1 = np.array(e0), np.array(e1)
     return {"k": k, "path": path, "gaussians": scene.num_gaussians, "ms_per_render": ms,
-            "working_set": float(np.median(wset)), "renders": float(np.median(ren)), "s_per_query": float(np.mean(sec)),
+            "working_set": float(np.median(wset)),
+            "selections": float(np.mean(nsel)), "renders": float(np.median(ren)), "s_per_query": float(np.mean(sec)),
             "before": [float(np.median(e0[:, 0])) * 100, float(np.median(e0[:, 1]))],
             "after": [float(np.median(e1[:, 0])) * 100, float(np.median(e1[:, 1]))],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
@@ -89,8 +93,8 @@ def main() -> None:
         print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise)))
         return
     lines = [f"Densified demo room, {a.queries} queries, noise {a.noise}; 2 threads unless the machine has more.\n",
-             "| Gaussians | path | ms / render | working set | renders / query | s / query | speed-up | "
-             "before t / R | after t / R | peak RSS (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| Gaussians | path | ms / render | working set | selections | renders / query | s / query | speed-up | "
+             "before t / R | after t / R | peak RSS (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     t_all = time.time()
     for k in a.k:
@@ -105,6 +109,7 @@ def main() -> None:
         for path, r in rows.items():
             sp = rows["whole map"]["s_per_query"] / r["s_per_query"]
             line = (f"| {r['gaussians']:,} | {path} | {r['ms_per_render']:.1f} | {r['working_set']:,.0f} | "
+                    f"{r['selections']:.1f} | "
                     f"{r['renders']:.0f} | {r['s_per_query']:.2f} | {sp:.2f}x | {r['before'][0]:.2f} / "
                     f"{r['before'][1]:.2f} | {r['after'][0]:.2f} / {r['after'][1]:.3f} | {r['peak_rss_mb']:.0f} |")
             lines.append(line)

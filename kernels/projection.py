@@ -106,79 +106,83 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         early_a, early_b = extent[0], extent[1]
         x_lo, x_hi = -cx / fx, (wf - cx) / fx
         y_lo, y_hi = -cy / fy, (hf - cy) / fy
-        for b, i in ti.ndrange(num_poses, n):
-            ntiles[b, i] = 0
-            R, t = view_rt(viewmats, b)
+        # one task per Gaussian, its poses in an inner loop: the Gaussian's data and its pose-independent terms
+        # (the opacity's logarithm) are read and computed once per batch instead of once per pose
+        for i in range(n):
             p_w = ti.Vector([means[i, 0], means[i, 1], means[i, 2]])
-            p_c = R @ p_w + t
-            z = p_c[2]
-            if z < near or z > far:
-                continue
-            rz0 = 1.0 / z
-            ext = early_a * smax[i] * rz0 + early_b
-            u0 = p_c[0] * rz0
-            v0 = p_c[1] * rz0
-            if u0 - ext > x_hi or u0 + ext < x_lo or v0 - ext > y_hi or v0 + ext < y_lo:
-                continue  # the box below would miss the image too
-            Sc = camera_covariance(cov3d, i, R)
-            J, _, _ = clamped_jacobian(p_c, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
-            rz = 1.0 / z
-            cov2 = J @ Sc @ J.transpose()
-            c00 = cov2[0, 0] + eps2d
-            c01 = cov2[0, 1]
-            c11 = cov2[1, 1] + eps2d
-            det = c00 * c11 - c01 * c01
-            if det <= 0.0:
-                continue
-            inv_det = 1.0 / det
-            mx = fx * p_c[0] * rz + cx
-            my = fy * p_c[1] * rz + cy
             op = opacities[i]
-            rx = 0.0
-            ry = 0.0
-            if ti.static(inria):
-                mid = 0.5 * (c00 + c11)
-                lam = mid + ti.sqrt(ti.max(0.1, mid * mid - det))
-                rx = ti.ceil(3.0 * ti.sqrt(lam))
-                ry = rx
-            else:
-                if op < alpha_min:
-                    continue
-                extend = ti.min(3.33, ti.sqrt(2.0 * (ti.log(op) + log_inv_amin)))
-                rx = ti.ceil(extend * ti.sqrt(c00))
-                ry = ti.ceil(extend * ti.sqrt(c11))
-            if rx <= 0.0 and ry <= 0.0:
-                continue
-            if mx + rx <= 0.0 or mx - rx >= wf or my + ry <= 0.0 or my - ry >= hf:
-                continue
-            x0 = ti.min(ti.max(0, ti.cast(ti.floor((mx - rx) / tile), ti.i32)), tiles_x)
-            x1 = ti.min(ti.max(0, ti.cast(ti.ceil((mx + rx) / tile), ti.i32)), tiles_x)
-            y0 = ti.min(ti.max(0, ti.cast(ti.floor((my - ry) / tile), ti.i32)), tiles_y)
-            y1 = ti.min(ti.max(0, ti.cast(ti.ceil((my + ry) / tile), ti.i32)), tiles_y)
-            nt = (x1 - x0) * (y1 - y0)
-            if nt <= 0:
-                continue
-            depth[b, i] = z
-            d = p_w - ti.Vector([campos[b, 0], campos[b, 1], campos[b, 2]])
-            d = d / ti.max(d.norm(), 1e-12)
-            rgb = eval_sh(sh, i, d)
-            # one record per Gaussian, read by both blend kernels
-            packed[b, i, Rec.X] = mx
-            packed[b, i, Rec.Y] = my
-            packed[b, i, Rec.CA] = c11 * inv_det
-            packed[b, i, Rec.CB] = -c01 * inv_det
-            packed[b, i, Rec.CC] = c00 * inv_det
-            packed[b, i, Rec.OPACITY] = op
+            s_i = smax[i]
             lim = ti.log(ti.max(op, 1e-30)) + log_inv_amin  # alpha >= alpha_min  <=>  sigma <= lim
-            packed[b, i, Rec.LIM] = lim
-            packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
-            for c in ti.static(range(3)):
-                packed[b, i, Rec.RGB + c] = ti.max(rgb[c] + 0.5, 0.0)
-            packed[b, i, Rec.DEPTH] = z
-            rect[b, i, 0] = x0
-            rect[b, i, 1] = y0
-            rect[b, i, 2] = x1
-            rect[b, i, 3] = y1
-            ntiles[b, i] = nt
+            extend = ti.min(3.33, ti.sqrt(ti.max(2.0 * lim, 0.0)))
+            for b in range(num_poses):
+                ntiles[b, i] = 0
+                R, t = view_rt(viewmats, b)
+                p_c = R @ p_w + t
+                z = p_c[2]
+                if z < near or z > far:
+                    continue
+                rz0 = 1.0 / z
+                ext = early_a * s_i * rz0 + early_b
+                u0 = p_c[0] * rz0
+                v0 = p_c[1] * rz0
+                if u0 - ext > x_hi or u0 + ext < x_lo or v0 - ext > y_hi or v0 + ext < y_lo:
+                    continue  # the box below would miss the image too
+                Sc = camera_covariance(cov3d, i, R)
+                J, _, _ = clamped_jacobian(p_c, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
+                rz = 1.0 / z
+                cov2 = J @ Sc @ J.transpose()
+                c00 = cov2[0, 0] + eps2d
+                c01 = cov2[0, 1]
+                c11 = cov2[1, 1] + eps2d
+                det = c00 * c11 - c01 * c01
+                if det <= 0.0:
+                    continue
+                inv_det = 1.0 / det
+                mx = fx * p_c[0] * rz + cx
+                my = fy * p_c[1] * rz + cy
+                rx = 0.0
+                ry = 0.0
+                if ti.static(inria):
+                    mid = 0.5 * (c00 + c11)
+                    lam = mid + ti.sqrt(ti.max(0.1, mid * mid - det))
+                    rx = ti.ceil(3.0 * ti.sqrt(lam))
+                    ry = rx
+                else:
+                    if op < alpha_min:
+                        continue
+                    rx = ti.ceil(extend * ti.sqrt(c00))
+                    ry = ti.ceil(extend * ti.sqrt(c11))
+                if rx <= 0.0 and ry <= 0.0:
+                    continue
+                if mx + rx <= 0.0 or mx - rx >= wf or my + ry <= 0.0 or my - ry >= hf:
+                    continue
+                x0 = ti.min(ti.max(0, ti.cast(ti.floor((mx - rx) / tile), ti.i32)), tiles_x)
+                x1 = ti.min(ti.max(0, ti.cast(ti.ceil((mx + rx) / tile), ti.i32)), tiles_x)
+                y0 = ti.min(ti.max(0, ti.cast(ti.floor((my - ry) / tile), ti.i32)), tiles_y)
+                y1 = ti.min(ti.max(0, ti.cast(ti.ceil((my + ry) / tile), ti.i32)), tiles_y)
+                nt = (x1 - x0) * (y1 - y0)
+                if nt <= 0:
+                    continue
+                depth[b, i] = z
+                d = p_w - ti.Vector([campos[b, 0], campos[b, 1], campos[b, 2]])
+                d = d / ti.max(d.norm(), 1e-12)
+                rgb = eval_sh(sh, i, d)
+                # one record per Gaussian, read by both blend kernels
+                packed[b, i, Rec.X] = mx
+                packed[b, i, Rec.Y] = my
+                packed[b, i, Rec.CA] = c11 * inv_det
+                packed[b, i, Rec.CB] = -c01 * inv_det
+                packed[b, i, Rec.CC] = c00 * inv_det
+                packed[b, i, Rec.OPACITY] = op
+                packed[b, i, Rec.LIM] = lim
+                packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
+                for c in ti.static(range(3)):
+                    packed[b, i, Rec.RGB + c] = ti.max(rgb[c] + 0.5, 0.0)
+                packed[b, i, Rec.DEPTH] = z
+                rect[b, i, 0] = x0
+                rect[b, i, 1] = y0
+                rect[b, i, 2] = x1
+                rect[b, i, 3] = y1
+                ntiles[b, i] = nt
 
     return project

@@ -1,6 +1,6 @@
 """Tile binning and depth ordering, in Taichi (CONVENTIONS §6 step 6).
 
-Per pose: gather the visible Gaussians, sort them by depth with a stable LSD radix sort on the float bits
+Per pose: gather the visible Gaussians, sort them by depth with a stable LSD radix sort (3 passes) on the float bits
 (depths are positive, so the bit pattern orders like the value), then a stable counting sort by tile id
 (count, prefix sum, scatter). Each tile's list therefore ends up in depth order, ties in index order, the
 same key order as gsplat's (tile | depth) sort. Each Gaussian's tile rectangle travels through the radix
@@ -16,15 +16,20 @@ import taichi as ti
 
 from .config import RasterConfig
 
+RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
+RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
+RADIX_MASK = RADIX - 1
+
 
 @functools.cache
 def count_kernel():
-    """Per-pose intersection totals: ntiles [B, N] -> totals [B]."""
+    """Per-pose intersection totals: ntiles [B, >= N] -> totals [B] (the first ``num_gaussians`` entries; a
+    pooled workspace may be longer)."""
 
     @ti.kernel
-    def count(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32,
+    def count(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32, num_gaussians: ti.i32,
               totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-        n = ntiles.shape[1]
+        n = num_gaussians
         for b in range(num_poses):
             s = ti.i64(0)
             for i in range(n):
@@ -39,10 +44,10 @@ def tile_sort_kernel(config: RasterConfig):
     """Compiled sorting kernel.
 
     Kernel arguments:
-        depth [B, N], rect [B, N, 4], ntiles [B, N], isect_base [B] (start of each pose in ``isect``),
-        tiles_x, tiles_y, num_poses;
+        depth [B, >= N], rect [B, >= N, 4], ntiles [B, >= N], isect_base [B] (start of each pose in ``isect``),
+        tiles_x, tiles_y, num_poses, num_gaussians N (a pooled workspace may hold more columns);
         scratch: keys_a, keys_b [B, N] u32, ids_a, ids_b [B, N] i32, rects [4, B, N] i32 (packed x and y tile
-        ranges, two ping-pong pairs), hist [B, 256] i32, cursor [B, T] i32;
+        ranges, two ping-pong pairs), hist [B, RADIX] i32, cursor [B, T] i32;
         outputs: tile_start [B, T + 1] (offsets relative to isect_base[b]), isect [M] Gaussian ids.
     """
 
@@ -55,6 +60,7 @@ def tile_sort_kernel(config: RasterConfig):
         tiles_x: ti.i32,
         tiles_y: ti.i32,
         num_poses: ti.i32,
+        num_gaussians: ti.i32,
         keys_a: ti.types.ndarray(dtype=ti.u32, ndim=2),
         keys_b: ti.types.ndarray(dtype=ti.u32, ndim=2),
         ids_a: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -65,7 +71,7 @@ def tile_sort_kernel(config: RasterConfig):
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
     ):
-        n = depth.shape[1]
+        n = num_gaussians
         num_tiles = tiles_x * tiles_y
         for b in range(num_poses):
             m = 0
@@ -76,27 +82,28 @@ def tile_sort_kernel(config: RasterConfig):
                     rects[0, b, m] = rect[b, i, 0] | (rect[b, i, 2] << 16)
                     rects[1, b, m] = rect[b, i, 1] | (rect[b, i, 3] << 16)
                     m += 1
-            # stable LSD radix sort, 4 passes of 8 bits: a -> b -> a -> b -> a
-            for p in ti.static(range(4)):
-                shift = ti.static(8 * p)
+            # stable LSD radix sort, 3 passes of 11, 11 and 10 bits (one pass over the keys fewer than 4 x 8; the
+            # 2048-bucket histogram still fits the L1 cache): a -> b -> a -> b, the sorted run ends in b
+            for p in ti.static(range(3)):
+                shift = ti.static(RADIX_BITS * p)
                 src_k = ti.static(keys_a if p % 2 == 0 else keys_b)
                 dst_k = ti.static(keys_b if p % 2 == 0 else keys_a)
                 src_i = ti.static(ids_a if p % 2 == 0 else ids_b)
                 dst_i = ti.static(ids_b if p % 2 == 0 else ids_a)
                 src_r = ti.static(0 if p % 2 == 0 else 2)
                 dst_r = ti.static(2 if p % 2 == 0 else 0)
-                for k in range(256):
+                for k in range(RADIX):
                     hist[b, k] = 0
                 for j in range(m):
-                    hist[b, ti.cast((src_k[b, j] >> shift) & 255, ti.i32)] += 1
+                    hist[b, ti.cast((src_k[b, j] >> shift) & RADIX_MASK, ti.i32)] += 1
                 acc = 0
-                for k in range(256):
+                for k in range(RADIX):
                     c = hist[b, k]
                     hist[b, k] = acc
                     acc += c
                 for j in range(m):
                     key = src_k[b, j]
-                    digit = ti.cast((key >> shift) & 255, ti.i32)
+                    digit = ti.cast((key >> shift) & RADIX_MASK, ti.i32)
                     pos = hist[b, digit]
                     hist[b, digit] = pos + 1
                     dst_k[b, pos] = key
@@ -107,8 +114,8 @@ def tile_sort_kernel(config: RasterConfig):
             for t in range(num_tiles):
                 cursor[b, t] = 0
             for j in range(m):
-                rx = rects[0, b, j]
-                ry = rects[1, b, j]
+                rx = rects[2, b, j]
+                ry = rects[3, b, j]
                 for ty in range(ry & 0xFFFF, ry >> 16):
                     for tx in range(rx & 0xFFFF, rx >> 16):
                         cursor[b, ty * tiles_x + tx] += 1
@@ -121,9 +128,9 @@ def tile_sort_kernel(config: RasterConfig):
             tile_start[b, num_tiles] = acc2
             base = ti.cast(isect_base[b], ti.i32)
             for j in range(m):
-                g = ids_a[b, j]
-                rx = rects[0, b, j]
-                ry = rects[1, b, j]
+                g = ids_b[b, j]
+                rx = rects[2, b, j]
+                ry = rects[3, b, j]
                 for ty in range(ry & 0xFFFF, ry >> 16):
                     for tx in range(rx & 0xFFFF, rx >> 16):
                         t = ty * tiles_x + tx

@@ -94,7 +94,7 @@ def test_tile_lists_match_reference_binning():
     r.render_full(cam, [T])
     ws = r._workspace(cam, 1)
     starts = ws.bufs["tile_start"].to_numpy()[0]
-    isect = r._isect.to_numpy()
+    isect = r._pool.isect.to_numpy()
     ref = bin_tiles(project(scene, cam, T.matrix()), cam)
     assert len(starts) == len(ref) + 1
     for t, ids in enumerate(ref):

@@ -102,10 +102,69 @@ def test_refine_with_and_without_working_set_identical():
     a = hp.HGSLocPlugin(scene, cfg).refine(img, cam, prior)
     b = hp.HGSLocPlugin(scene, cfg.replace(working_set=False)).refine(img, cam, prior)
     assert a.working_set < 0.8 * scene.num_gaussians and b.working_set == scene.num_gaussians
+    assert a.working_set_selections >= 1 and b.working_set_selections == 0
     assert a.pose == b.pose and a.search_pose == b.search_pose
     assert a.cost_initial == b.cost_initial and a.search_cost == b.search_cost and a.renders == b.renders
     # below working_set_min the whole map is used
     assert hp.HGSLocPlugin(scene, hp.RefineConfig.preset("fast")).refine(img, cam, prior).working_set == len(scene)
+
+
+def test_following_working_set_equals_whole_map_and_reselects():
+    """WorkingSet: batches that wander beyond its region are re-selected (and a batch too spread for one region
+    is rendered from the whole map); every cost, image and pose derivative equals the whole map's bit for bit."""
+    from hgsloc_plugin.working_set import WorkingSet, mean_pose
+
+    scene = densify(make_room_scene(), 2)
+    full = get_renderer(scene)
+    cam = hp.Camera.from_fov(320, 240, 65.0).with_max_side(160)
+    T0 = query_poses(1, seed=2)[0]
+    rng = np.random.default_rng(0)
+    ws = WorkingSet(full, [cam], 0.02, 1.0)
+    walk = [T0]
+    for _ in range(4):  # each step leaves the previous region (4 cm, 2 deg)
+        walk.append(se3_noise(walk[-1], 2.0, 0.04, rng))
+    batches = [[se3_noise(T, 0.4, 0.004, rng) for _ in range(3)] + [T] for T in walk]
+    batches.append([walk[0], walk[-1]])  # too far apart for one region: whole map
+    query = full.render_full(cam, [T0])[0][0]
+    qstats = full.upload_window_query(query)
+    target = full.upload_image(query)
+    for batch in batches:
+        np.testing.assert_array_equal(ws.window_cost(cam, batch, qstats), full.window_cost(cam, batch, qstats))
+        np.testing.assert_array_equal(ws.cost_stats(cam, batch, target), full.cost_stats(cam, batch, target))
+        for x, y in zip(ws.render_full(cam, batch), full.render_full(cam, batch)):
+            np.testing.assert_array_equal(x, y)
+    for x, y in zip(ws.pose_gradient(cam, walk[-1:], qstats), full.pose_gradient(cam, walk[-1:], qstats)):
+        np.testing.assert_array_equal(x, y)
+    assert ws.selections == len(walk), ws.selections
+    assert ws.fallback_poses == 3 * 2  # the spread batch, in three calls
+    assert 0 < ws.largest < 0.6 * full.n
+    m = mean_pose(batches[0])
+    assert max(np.linalg.norm(m.centre() - p.centre()) for p in batches[0]) < 0.01
+    with pytest.raises(ValueError, match="radii"):
+        WorkingSet(full, [cam], 0.0, 1.0)
+
+
+def test_working_sets_share_workspaces_and_ignore_stale_columns():
+    """Working sets of one map share the map's workspaces (no allocation per query); a smaller set rendered
+    after a larger one ignores the larger one's leftover per-Gaussian columns (the sort takes N as an argument:
+    reading the buffer's width, it would bin the stale entries)."""
+    scene = densify(make_room_scene(), 2)
+    full = get_renderer(scene)
+    cam = hp.Camera.from_fov(320, 240, 65.0).with_max_side(120)
+    T = query_poses(1, seed=3)[0]
+    big = full.working_set([cam], T, 0.3, 10.0)
+    small = full.working_set([cam], T, 0.01, 0.5)
+    assert small.n < big.n < full.n
+    poses = [T, se3_noise(T, 0.3, 0.005, np.random.default_rng(1))]
+    big.render_full(cam, poses)
+    ws = big._workspace(cam, 2)
+    got = small.render_full(cam, poses)
+    assert small._workspace(cam, 2) is ws and small._pool is full._pool
+    fresh = full.subset(np.flatnonzero(np.isin(full.source_index, small.source_index)).astype(np.int32))
+    fresh._init_state()  # its own, exactly sized workspaces
+    for x, y, z in zip(got, fresh.render_full(cam, poses), full.render_full(cam, poses)):
+        np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(x, z)
 
 
 def test_subset_rejects_bad_indices():

@@ -45,12 +45,15 @@ class RefineConfig:
         acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
             of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
             coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
-        working_set: render each query's search from the Gaussians that some pose of its trust region can see,
-            selected once per query (``kernels/cull.py``; conservative: the images are bit-identical to the
-            whole map's), instead of the whole map per render; only for maps of at least ``working_set_min``
-            Gaussians: below that (measured with ``benchmarks/map_scale.py``: 0.86x at 49k, 0.97x at 195k,
-            1.09x at 488k), the selection and the per-query buffers cost about what they save, because the
-            projection already rejects invisible Gaussians early.
+        working_set: render each query's search from the Gaussians that some pose near the poses it scores
+            can see (``working_set.WorkingSet``: selected for a region of ``working_set_pixels`` around the
+            first poses scored, selected again when the search leaves it; conservative, so the images are
+            bit-identical to the whole map's) instead of the whole map per render; only for maps of at least
+            ``working_set_min`` Gaussians (below that the projection's early rejection of invisible Gaussians
+            already costs about what a selection saves; ``benchmarks/map_scale.py``).
+        working_set_pixels: the selection region's radius in image motion at the final scoring size (pixels:
+            rotation and camera shift at the median depth); a smaller region keeps fewer Gaussians and is left
+            more often.
         polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
             derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
             falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.
@@ -89,6 +92,7 @@ class RefineConfig:
     acceptance: str = "trust"
     working_set: bool = True
     working_set_min: int = 300_000
+    working_set_pixels: float = 8.0
     polish: bool = True
     polish_iterations: int = 16
     polish_max_side: int = 320
@@ -108,6 +112,8 @@ class RefineConfig:
             v = getattr(self, name)
             if v is not None and not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number or None, got {v!r}")
+        if not (self.working_set_pixels > 0 and math.isfinite(self.working_set_pixels)):
+            raise ValueError(f"working_set_pixels must be a positive number, got {self.working_set_pixels!r}")
         if not self.trust_steps > 0:
             raise ValueError(f"trust_steps must be > 0, got {self.trust_steps}")
         if self.neighbourhood not in ("lattice", "paper"):

@@ -16,6 +16,7 @@ from ..kernels import RasterConfig
 from ..pose import Pose, rotation_angle_deg
 from ..render import get_renderer
 from ..scene import GaussianScene
+from ..working_set import WorkingSet
 from .config import RefineConfig
 from .polish import PolishStats, polish
 from .scorer import Scorer
@@ -56,7 +57,8 @@ class RefineResult:
             not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         expansions / renders: search effort; levels: per-level details; seconds: wall time.
-        working_set: Gaussians the search rendered (the per-query working set; the whole map when it is off).
+        working_set: Gaussians the search rendered (the largest of the query's working-set selections; the whole
+            map when it is off); working_set_selections: selections made (0 when off).
         polish: the Levenberg-Marquardt stages run (``refine/polish.py``: size, passes, last step, the 6x6 JtJ
             at the solution); empty when off. ``derivative_passes``: their derivative passes in all.
         history: best cost after each expansion (costs of different levels may use different resolutions).
@@ -81,6 +83,7 @@ class RefineResult:
     error: str | None = None
     name: str | None = None
     working_set: int = 0
+    working_set_selections: int = 0
     polish: list[PolishStats] = field(default_factory=list)
 
     @property
@@ -99,6 +102,7 @@ class RefineResult:
             "rejected": self.rejected, "cost_initial": self.cost_initial,
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
             "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
+            "working_set_selections": self.working_set_selections,
             "derivative_passes": self.derivative_passes, "polish": [p.to_dict() for p in self.polish],
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
@@ -203,6 +207,20 @@ class Refiner:
         renderer = self._working_set(plan, coarse_pose)
         scorer = Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha)
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n)
+        try:
+            self._run(plan, renderer, scorer, img, coarse_pose, result)
+        finally:
+            if isinstance(renderer, WorkingSet):
+                result.working_set, result.working_set_selections = renderer.largest, renderer.selections
+        result.renders = scorer.renders
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def _run(self, plan: _Plan, renderer, scorer: Scorer, img: np.ndarray, coarse_pose: Pose,
+             result: RefineResult) -> None:
+        """The search, the polish and the acceptance rule of one query; fills ``result``."""
+        cfg = self.config
+        name = result.name
         scorer.set_query(plan.cam_final, img)
         result.cost_initial = float(scorer([coarse_pose])[0])
         if cfg.search:
@@ -235,22 +253,18 @@ class Refiner:
             result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
             logger.debug("query %s: search pose rejected (%s): %s", name, result.rejected,
                          result.assessment.to_dict() if result.assessment else {})
-        result.renders = scorer.renders
-        result.seconds = time.perf_counter() - t0
-        return result
 
     def _working_set(self, plan: _Plan, coarse: Pose):
-        """The renderer the search uses: the Gaussians some pose it may score can see (``kernels/cull.py``), or
-        the whole map when ``RefineConfig.working_set`` is off or the map has fewer than ``working_set_min``
-        Gaussians. The region is the trust region widened by two final-level pixels of motion, which covers the
-        acceptance rule's one-pixel moves around a pose on its edge."""
+        """The renderer the search uses: a :class:`WorkingSet` that follows the poses scored (region radius
+        ``working_set_pixels`` of image motion at the final size), or the whole map when
+        ``RefineConfig.working_set`` is off or the map has fewer than ``working_set_min`` Gaussians."""
         if not self.config.working_set or self.renderer.n < self.config.working_set_min:
             return self.renderer
         cam = plan.cam_final
         f = min(cam.fx, cam.fy)
-        t = plan.max_t + 2.0 * plan.depth / f
-        r = plan.max_r + math.degrees(2.0 / f)
-        return self.renderer.working_set([plan.cam_final, plan.cam_coarse, plan.cam_polish], coarse, t, r)
+        px = self.config.working_set_pixels
+        return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish], px * plan.depth / f,
+                          math.degrees(px / f))
 
     def _polish(self, plan: _Plan, renderer, img: np.ndarray, pose: Pose, coarse: Pose,
                 result: RefineResult) -> Pose:

@@ -67,10 +67,12 @@ def summary_line(t: dict, out) -> str:
     """One line: refined, kept (per reason), failed, median confidence, effort."""
     kept = sum(t.get("rejected", {}).values())
     why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
-    conf = t.get("median_confidence")
+    conf, st, sr = t.get("median_confidence"), t.get("median_sigma_t"), t.get("median_sigma_r_deg")
+    sig = f", median sigma {st:.3g} / {sr:.3g} deg" if st is not None and sr is not None else ""
     return (f"refined {t['accepted']} / {t['queries']} queries, kept the prior for {kept}"
             + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
-            + (f"{conf:.2f}" if conf is not None else "-") + f"; {t['renders']} renders, {t['seconds']:.1f} s -> {out}")
+            + (f"{conf:.2f}" if conf is not None else "-") + sig
+            + f"; {t['renders']} renders, {t['seconds']:.1f} s -> {out}")
 
 
 _LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}

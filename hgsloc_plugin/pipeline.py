@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -55,7 +56,9 @@ class _Run:
         self.report["totals"] = {
             "queries": len(self.report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
             "failed": sum(1 for v in q if v.get("error")), "rejected": rejected_counts(q),
-            "median_confidence": median_confidence(q), "renders": sum(v.get("renders", 0) for v in q),
+            "median_confidence": median_confidence(q),
+            "median_sigma_t": median_accepted(q, "sigma_t"), "median_sigma_r_deg": median_accepted(q, "sigma_r_deg"),
+            "renders": sum(v.get("renders", 0) for v in q),
             "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
         }
         write_json(report_path(self.output), self.report)
@@ -72,8 +75,14 @@ def rejected_counts(entries) -> dict[str, int]:
 
 def median_confidence(entries) -> float | None:
     """Median confidence of the accepted queries (None if none was accepted)."""
-    c = sorted(v["confidence"] for v in entries if v.get("accepted") and v.get("confidence") is not None)
-    return round(c[len(c) // 2], 4) if c else None
+    return median_accepted(entries, "confidence")
+
+
+def median_accepted(entries, key: str) -> float | None:
+    """Median of a finite field (``confidence``, ``sigma_t``, ...) over the accepted queries (None if none)."""
+    c = sorted(v[key] for v in entries if v.get("accepted") and isinstance(v.get(key), (int, float))
+               and math.isfinite(v[key]))
+    return round(c[len(c) // 2], 6) if c else None
 
 
 def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose]]:

@@ -4,6 +4,7 @@ stdout purity of the CLI, and the real-photo behaviour the rule exists for (``..
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -111,12 +112,34 @@ def test_real_photos_true_pose_is_kept_and_priors_improve():
         r = refiner.refine(img, cam, gt, name=name)
         assert r.search_pose != gt, "the search moved away from the truth (what the rule must catch)"
         assert r.rejected == "insignificant" and r.pose == gt and r.confidence == 0.0
+        assert math.isnan(r.sigma_t) and r.covariance is None  # no uncertainty for a pose not refined
         coarse = se3_noise(gt, 1.0, 0.02 * depth, np.random.default_rng(7))
         r2 = refiner.refine(img, cam, coarse, name=name)
         assert r2.accepted and r2.rejected is None and r2.confidence > 0.2
         t0, r0 = coarse.errors_to(gt)
         t1, r1 = r2.pose.errors_to(gt)
         assert t1 < 0.5 * t0 and r1 < 0.5 * r0, (name, t0, r0, t1, r1)
+        # the uncertainty is informative (well below the prior's error) and covers the real error
+        assert 0 < r2.sigma_t < 0.5 * t0 and 0 < r2.sigma_r_deg < 0.5 * r0, (r2.sigma_t, r2.sigma_r_deg, t0, r0)
+        assert t1 <= 3 * r2.sigma_t and r1 <= 3 * r2.sigma_r_deg, (t1, r2.sigma_t, r1, r2.sigma_r_deg)
+
+
+def test_pose_uncertainty_blocks_and_degenerate_cases():
+    """Rotation and translation blocks map to sigma_r (degrees) and sigma_t; the covariance scales with the
+    cost's level and falls with the curvature; a singular or non-finite Hessian gives infinity."""
+    from hgsloc_plugin.refine.trust import UNCERTAINTY_SCALE, pose_uncertainty
+
+    H = np.diag([4.0, 9.0, 16.0, 100.0, 400.0, 2500.0])
+    cov, st, sr = pose_uncertainty(H, 0.25)
+    k2 = UNCERTAINTY_SCALE ** 2 * 0.25
+    np.testing.assert_allclose(np.diag(cov), k2 / np.diag(H))
+    assert st == pytest.approx(math.sqrt(k2 * (1 / 100 + 1 / 400 + 1 / 2500)))
+    assert sr == pytest.approx(math.degrees(math.sqrt(k2 * (1 / 4 + 1 / 9 + 1 / 16))))
+    _, st4, sr4 = pose_uncertainty(4.0 * H, 0.25)  # four times the curvature: half the sigma
+    assert st4 == pytest.approx(st / 2) and sr4 == pytest.approx(sr / 2)
+    for bad, cost in ((np.diag([1.0, 1, 1, 1, 1, 0]), 0.2), (np.full((6, 6), np.nan), 0.2), (H, math.nan)):
+        _, st_b, sr_b = pose_uncertainty(bad, cost)
+        assert math.isinf(st_b) and math.isinf(sr_b)
 
 
 def _run_cli(args):
@@ -151,6 +174,10 @@ def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path
     for q in rep["queries"].values():
         assert set(q) >= {"accepted", "confidence", "rejected", "assessment"}
         assert q["accepted"] == (q["rejected"] is None)
+        # a refined pose carries its uncertainty (strict JSON: null when not refined)
+        assert (q["sigma_t"] is not None and q["sigma_t"] > 0) == q["accepted"], q
+    assert rep["totals"]["accepted"] >= 1  # the tiny case's priors (a few pixels off) are refined
+    assert rep["totals"]["median_sigma_t"] > 0 and "median sigma" in out[0]
     p = _run_cli(["render", "--scene", str(d / "scene.ply"), "--pose", "1 0 0 0 0 0 0", "--camera",
                   "64 48 50 50 32 24", "--out", str(tmp_path / "x.png")])
     assert p.returncode == 0 and p.stdout.strip().splitlines() == [f"wrote {tmp_path / 'x.png'} (64x48)"]

@@ -21,7 +21,7 @@ from .config import RefineConfig
 from .polish import PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
-from .trust import Assessment, assess
+from .trust import Assessment, assess, pose_uncertainty
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -51,6 +51,10 @@ class RefineResult:
             rule judged: the polish's when it runs (``polish_max_side``), else the final scoring size.
         accepted: the search's pose passed the acceptance rule (``RefineConfig.acceptance``) and is returned.
         confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
+        sigma_t / sigma_r_deg: estimated standard deviation of the returned pose's camera centre (scene units)
+            and rotation (degrees), from the polish's Hessian (``trust.pose_uncertainty``, calibrated on real
+            photos); nan when the search's pose was not returned or no polish ran. covariance: [6, 6] of the
+            increment ``xi = (w, v)`` of ``Pose.perturbed_in_camera`` at the returned pose, or None.
         rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
             "trust-region edge", "level inconsistency", "no improvement"), None when accepted or failed.
         search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
@@ -71,6 +75,9 @@ class RefineResult:
     cost_final: float = math.nan
     accepted: bool = False
     confidence: float = 0.0
+    sigma_t: float = math.nan
+    sigma_r_deg: float = math.nan
+    covariance: np.ndarray | None = None
     rejected: str | None = None
     search_pose: Pose | None = None
     search_cost: float = math.nan
@@ -99,6 +106,8 @@ class RefineResult:
     def to_dict(self) -> dict:
         return {
             "name": self.name, "accepted": self.accepted, "confidence": round(self.confidence, 4),
+            "sigma_t": self.sigma_t, "sigma_r_deg": self.sigma_r_deg,
+            "covariance": self.covariance.tolist() if self.covariance is not None else None,
             "rejected": self.rejected, "cost_initial": self.cost_initial,
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
             "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
@@ -247,6 +256,9 @@ class Refiner:
             result.rejected = "no improvement"
         if result.rejected is None:
             result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
+            if result.polish:  # the last stage's Hessian is at its best pose, the one returned
+                last = result.polish[-1]
+                result.covariance, result.sigma_t, result.sigma_r_deg = pose_uncertainty(last.jtj, last.cost)
             if result.assessment is None:  # cost-only acceptance measures nothing to be confident about
                 result.confidence = math.nan
         else:

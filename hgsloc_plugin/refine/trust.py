@@ -24,6 +24,16 @@ The search's pose is returned only when all hold (else the coarse pose, with the
 - ``"level inconsistency"``: the fine levels moved it further from the coarse levels' answer than
   ``MAX_LEVEL_SHIFT`` coarsest steps (the pyramid disagreed about the basin; on the lego and snow sets
   correct refinements move up to 4 steps after the coarse levels).
+
+The **uncertainty** of a polished pose (:func:`pose_uncertainty`) is read from the Gauss-Newton Hessian ``H``
+of the cs cost at the solution (``Renderer.pose_gradient``) and the cost's level ``c`` there: the covariance of
+the increment ``xi = (w, v)`` is taken as ``UNCERTAINTY_SCALE^2 * c * H^-1`` (the least-squares form
+``sigma^2 (J^T J)^-1`` with the residual level standing in for the noise; the factor, for residuals correlated
+over the window and over the map's errors, is calibrated on real photographs: snow and lego, 33 refined
+poses from 1-10 cm-equivalent priors: median |error| / sigma 0.85 for the camera centre and 0.58 for the
+rotation, 1 of 33 centre errors beyond 2 sigma). On clean synthetic renders (the demo room) it overestimates
+the error about 20x: pixel noise averages out, a real map's errors do not. It does not see a map's bias
+(snow query 0: 2.9 cm-equivalent off, sigma 1.5).
 """
 
 from __future__ import annotations
@@ -38,6 +48,31 @@ MIN_SHARPNESS = 0.02
 MIN_ALIGNMENT = 0.005
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
+UNCERTAINTY_SCALE = 0.1
+
+
+def pose_uncertainty(jtj: np.ndarray, cost: float) -> tuple[np.ndarray, float, float]:
+    """Covariance and standard deviations of a polished pose (see the module docstring).
+
+    Args:
+        jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
+            pose; cost: the cs cost there.
+
+    Returns:
+        (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
+        the sigmas are the root of the trace of the blocks (the centre moves by ``-R^T v``, a rotation, so its
+        trace is ``v``'s). Infinite where ``jtj`` is singular or not finite.
+    """
+    H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or not (cost >= 0 and math.isfinite(cost)):
+        return np.full((6, 6), math.inf), math.inf, math.inf
+    ev = np.linalg.eigvalsh(H)
+    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
+        return np.full((6, 6), math.inf), math.inf, math.inf
+    cov = UNCERTAINTY_SCALE ** 2 * cost * np.linalg.inv(H)
+    sigma_t = math.sqrt(max(float(np.trace(cov[3:, 3:])), 0.0))
+    sigma_r = math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0)))
+    return cov, sigma_t, sigma_r
 
 
 @dataclass

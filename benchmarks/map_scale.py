@@ -9,7 +9,9 @@ process so that its peak memory (max RSS) is its own. Paths:
 - ``whole map``: every render projects, sorts and blends the whole map (``RefineConfig(working_set=False)``);
 - ``working set``: the Gaussians some pose near the poses scored can see (``working_set.WorkingSet``: a region
   of ``working_set_pixels`` around the first poses scored, selected again when the search leaves it;
-  ``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``).
+  ``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``);
+- ``working set + coarse LOD``: the same, and the coarse (pyramid) levels render a level of detail with
+  Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``RefineConfig.coarse_lod_pixels=2``; opt-in).
 
 Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
@@ -32,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PATHS = ("whole map", "working set")
+PATHS = ("whole map", "working set", "working set + coarse LOD")
 
 
 def child(k: int, path: str, queries: int, noise: str) -> dict:
@@ -51,7 +53,8 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     priors = [apply_protocol(g, noise, rng) for g in gts]
     scene = densify(room, k)
     del room
-    cfg = hp.RefineConfig(working_set=path == "working set", working_set_min=0)  # forced at every size
+    cfg = hp.RefineConfig(working_set=path != "whole map", working_set_min=0,  # forced at every size
+                          coarse_lod_pixels=2.0 if path.endswith("LOD") else None)
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = refiner._plan(cam, priors[0])

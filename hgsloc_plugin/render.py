@@ -197,6 +197,30 @@ class Renderer:
         sub._pool = self._pool  # shared workspaces (kernels take N as an argument or read it from the scene)
         return sub
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Host copies of the resident Gaussians, in resident order: ``means`` [n, 3], ``cov3d`` [n, 6]
+        (xx, xy, xz, yy, yz, zz), ``opacities`` [n], ``sh`` [n, K, 3], ``smax`` [n] (bound on the std. dev.)."""
+        return {"means": self._means.to_numpy(), "cov3d": self._cov3d.to_numpy(), "opacities": self._opac.to_numpy(),
+                "sh": self._sh.to_numpy(), "smax": self._smax.to_numpy()}
+
+    def derived(self, arrays: dict[str, np.ndarray], source_index: np.ndarray) -> Renderer:
+        """A renderer of other Gaussians (``arrays`` as from :meth:`arrays`, resident in the order given) with
+        this one's config, kernels and workspaces; ``source_index`` [m]: scene index per Gaussian (-1: none)."""
+        m = len(arrays["means"])
+        if m == 0:
+            raise ValueError("no Gaussians")
+        sub = object.__new__(Renderer)
+        sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool")})
+        sub.n = m
+        sub.source_index = np.asarray(source_index)
+        sub._means = self._upload(arrays["means"].astype(np.float32), ti.f32)
+        sub._cov3d = self._upload(arrays["cov3d"].astype(np.float32), ti.f32)
+        sub._opac = self._upload(arrays["opacities"].astype(np.float32), ti.f32)
+        sub._sh = self._upload(arrays["sh"].astype(np.float32), ti.f32)
+        sub._smax = self._upload(arrays["smax"].astype(np.float32), ti.f32)
+        return sub
+
     @staticmethod
     def _upload(a: np.ndarray, dtype) -> ti.Ndarray:
         a = np.ascontiguousarray(a)

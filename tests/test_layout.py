@@ -17,7 +17,7 @@ LAYERS = {
     "kernels": 0,
     "pose": 1, "camera": 1, "fileio": 1, "scene": 1, "image": 1, "backend": 1,
     "costs": 2, "render": 2,
-    "adapters": 3, "working_set": 3,
+    "adapters": 3, "working_set": 3, "lod": 3,
     "refine": 4, "evaluate": 4, "noise": 4, "viz": 4,
     "check": 5,
     "distributed": 5,

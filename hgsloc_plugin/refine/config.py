@@ -55,6 +55,9 @@ class RefineConfig:
         working_set_pixels: the selection region's radius in image motion at the final scoring size (pixels:
             rotation and camera shift at the median depth); a smaller region keeps fewer Gaussians and is left
             more often.
+        coarse_lod_pixels: the coarse (pyramid) levels render a level of detail in which Gaussians of at most
+            this many pixels are merged per cell of this size (``lod.py``; approximate, built once per query;
+            only with a working set); None (default): the exact map at every level.
         polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
             derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
             falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.
@@ -94,6 +97,7 @@ class RefineConfig:
     working_set: bool = True
     working_set_min: int = 100_000
     working_set_pixels: float = 8.0
+    coarse_lod_pixels: float | None = None
     polish: bool = True
     polish_iterations: int = 16
     polish_max_side: int = 320
@@ -115,6 +119,9 @@ class RefineConfig:
                 raise ValueError(f"{name} must be a positive number or None, got {v!r}")
         if not (self.working_set_pixels > 0 and math.isfinite(self.working_set_pixels)):
             raise ValueError(f"working_set_pixels must be a positive number, got {self.working_set_pixels!r}")
+        if self.coarse_lod_pixels is not None and not (self.coarse_lod_pixels > 0
+                                                       and math.isfinite(self.coarse_lod_pixels)):
+            raise ValueError(f"coarse_lod_pixels must be a positive number or None, got {self.coarse_lod_pixels!r}")
         if not self.trust_steps > 0:
             raise ValueError(f"trust_steps must be > 0, got {self.trust_steps}")
         if self.neighbourhood not in ("lattice", "paper"):

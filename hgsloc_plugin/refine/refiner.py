@@ -13,6 +13,7 @@ import numpy as np
 from ..camera import Camera
 from ..image import check_size, load_image, resize_image
 from ..kernels import RasterConfig
+from ..lod import coarse_lod
 from ..pose import Pose, rotation_angle_deg
 from ..render import get_renderer
 from ..scene import GaussianScene
@@ -342,13 +343,17 @@ class Refiner:
         best_pose, best_cost, best_cam = coarse, result.cost_initial, plan.cam_final
         after_coarse = coarse
         remaining = cfg.max_expansions
+        exact, lod = scorer.renderer, None
         for li, (s_rot, s_t) in enumerate(plan.levels):
             if remaining <= 0:
                 break
             is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
             cam_l = plan.cam_coarse if is_coarse else plan.cam_final
-            if cam_l != best_cam:
-                scorer.set_query(cam_l, img)
+            if is_coarse and lod is None and cfg.coarse_lod_pixels is not None and isinstance(exact, WorkingSet):
+                lod = coarse_lod(exact.full, plan.cam_coarse, coarse, plan.max_t, plan.max_r, cfg.coarse_lod_pixels)
+            want = lod if is_coarse and lod is not None else exact
+            if cam_l != best_cam or want is not scorer.renderer:
+                scorer.set_query(cam_l, img, renderer=want)
                 best_cost = float(scorer([best_pose])[0])
                 best_cam = cam_l
             if cfg.neighbourhood == "paper":
@@ -366,7 +371,7 @@ class Refiner:
                                             lr.best_cost, lr.stopped))
             if is_coarse:
                 after_coarse = best_pose
-        if best_cam != plan.cam_final:
-            scorer.set_query(plan.cam_final, img)
+        if best_cam != plan.cam_final or scorer.renderer is not exact:
+            scorer.set_query(plan.cam_final, img, renderer=exact)
             best_cost = float(scorer([best_pose])[0])
         return best_pose, best_cost, after_coarse

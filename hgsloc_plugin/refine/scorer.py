@@ -27,8 +27,11 @@ class Scorer:
         self.renders = 0
         self._cache: dict[bytes, float] = {}  # costs at the current query resolution, keyed by exact pose
 
-    def set_query(self, camera: Camera, image_full: np.ndarray) -> None:
-        """Prepare the query [H, W, 3] at ``camera``'s (scoring) size."""
+    def set_query(self, camera: Camera, image_full: np.ndarray, renderer=None) -> None:
+        """Prepare the query [H, W, 3] at ``camera``'s (scoring) size; ``renderer``: render with it from now on
+        (e.g. a coarse level of detail; the cache is per resolution and renderer)."""
+        if renderer is not None:
+            self.renderer = renderer
         self.camera = camera
         self._cache = {}
         self.query = resize_image(image_full, camera.width, camera.height)

@@ -110,6 +110,18 @@ def vertical_moments(hbuf: ti.template(), b, y, x, c, H):
     return m, m2, mrq
 
 
+@ti.func
+def contrast_structure(hbuf: ti.template(), qstats: ti.template(), b, y, x, c, H):
+    """The cs term at one pixel and channel, ``(2 s_rq + C2) / D`` with ``D = s_rr + s_qq + C2``: returns (cs, D,
+    windowed rendering mean, windowed query mean); shared by the cost and its derivative (``window_grad.py``)."""
+    m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
+    mq = qstats[y, x, c, 0]
+    s_rr = ti.max(m2 - m * m, 0.0)
+    s_rq = mrq - m * mq
+    den = s_rr + qstats[y, x, c, 1] + C2
+    return (2.0 * s_rq + C2) / den, den, m, mq
+
+
 @functools.cache
 def vertical_cost_kernel(with_luminance: bool):
     """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 1, 2] = (sum of values, pixels),
@@ -128,11 +140,7 @@ def vertical_cost_kernel(with_luminance: bool):
                 if alpha[b, y, x] >= mask_alpha:
                     v = 0.0
                     for c in ti.static(range(3)):
-                        m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
-                        mq = qstats[y, x, c, 0]
-                        s_rr = ti.max(m2 - m * m, 0.0)
-                        s_rq = mrq - m * mq
-                        cs = (2.0 * s_rq + C2) / (s_rr + qstats[y, x, c, 1] + C2)
+                        cs, _, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
                         if ti.static(with_luminance):
                             cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
                         v += cs

@@ -25,7 +25,7 @@ import functools
 import taichi as ti
 
 from .pose_grad import NXI
-from .window import C2, RADIUS, vertical_moments, window_weights
+from .window import RADIUS, contrast_structure, window_weights
 
 _W = window_weights()
 
@@ -56,12 +56,7 @@ def cs_terms_kernel():
                 valid = alpha[b, y, x] >= mask_alpha
                 v = 0.0
                 for c in ti.static(range(3)):
-                    m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
-                    mq = qstats[y, x, c, 0]
-                    s_rr = ti.max(m2 - m * m, 0.0)
-                    s_rq = mrq - m * mq
-                    den = s_rr + qstats[y, x, c, 1] + C2
-                    cs = (2.0 * s_rq + C2) / den
+                    cs, den, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
                     v += cs
                     a = 0.0
                     bw = 0.0

@@ -197,6 +197,54 @@ def test_lm_converges_from_a_subpixel_offset_to_well_below_the_finest_step(name)
     assert step_pixels(np.zeros(6), f, depth) == 0.0
 
 
+class _QuadraticCost:
+    """A stand-in renderer whose cs cost is a known quadratic in the camera centre and rotation about a target
+    pose, and whose Gauss-Newton Hessian overstates the curvature ``overstate`` times (as on maps where the polish
+    crawls): exact gradient and cost by central differences in ``xi``."""
+
+    def __init__(self, target: hp.Pose, overstate: float):
+        self.target, self.overstate = target, overstate
+
+    def cost(self, T: hp.Pose) -> float:
+        t, a = T.errors_to(self.target)
+        return 0.05 + 4.0 * t * t + 0.01 * a * a
+
+    def window_cost(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+        return np.array([[1.0 - self.cost(T), 1.0] for T in poses])
+
+    def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+        T, h = poses[0], 1e-4
+        E = np.eye(6) * h
+        f = [[self.cost(T.perturbed_in_camera(e[:3], e[3:])) for e in sgn * E] for sgn in (1, -1)]
+        g = (np.array(f[0]) - np.array(f[1])) / (2 * h)
+        H = np.zeros((6, 6))
+        c0 = self.cost(T)
+        for i in range(6):
+            for j in range(6):
+                pp = T.perturbed_in_camera((E[i] + E[j])[:3], (E[i] + E[j])[3:])
+                H[i, j] = (self.cost(pp) - f[0][i] - f[0][j] + c0) / (h * h)
+        return np.array([c0]), g[None], (self.overstate * 0.5 * (H + H.T))[None]
+
+
+def test_line_search_lengthens_short_gauss_newton_steps():
+    """With the Hessian overstated 4x, the plain LM steps cover a quarter of the way per pass; the line search
+    (multiples 1, 2, 4 scored with the cost alone) reaches the minimum in fewer derivative passes, never above
+    the start's cost."""
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    fake = _QuadraticCost(target, 4.0)
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    out = {}
+    for ls in ((), (1.0, 2.0, 4.0)):
+        pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, line_search=ls)
+        out[ls] = (pose, st)
+        assert st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
+    (_, s0), (p1, s1) = out[()], out[(1.0, 2.0, 4.0)]
+    assert s0.renders == 0 and s1.renders >= 3
+    assert s1.cost <= s0.cost * (1 + 1e-9) and s1.passes < 0.6 * s0.passes, (s0.passes, s1.passes)
+    assert p1.errors_to(target)[0] < 1e-3
+
+
 def test_refine_reports_polish_and_gradient_preset():
     scene = make_room_scene()
     cam = hp.Camera.from_fov(160, 120, 65.0)
@@ -214,8 +262,11 @@ def test_refine_reports_polish_and_gradient_preset():
     assert st.cost <= st.cost_start and st.jtj.shape == (6, 6) and np.allclose(st.jtj, st.jtj.T)
     assert (st.width, st.height) == (160, 120)  # the query's own size (below polish_max_side)
     assert d.to_dict()["polish"][0]["passes"] == st.passes
-    # gradient only: no lattice search at all (one render of the prior, the 12 acceptance moves and the result)
-    assert g.expansions == 0 and g.renders <= 14 and len(g.polish) >= 2
+    # gradient only: no lattice search at all (one render of the prior, the 12 acceptance moves and the result,
+    # plus the polish's line search: 3 per trial)
+    assert g.expansions == 0 and len(g.polish) >= 2
+    assert g.renders - sum(p.renders for p in g.polish) <= 14
+    assert all(p.renders <= 3 * p.passes + 3 * 3 for p in g.polish)  # 3 multiples per trial, failures included
     for r in (d, g):
         assert r.accepted
         t, a = r.pose.errors_to(gt)

@@ -8,6 +8,12 @@ and the step is re-solved from the same system. It stops on a step below ``min_s
 step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected trials in a row, or
 after ``iterations`` passes. A trial outside the trust region is not rendered: the damping grows until the step fits
 (or the polish stops, "trust region").
+
+Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
+(one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
+lowers the cost the trial fails without a derivative pass. On a map whose Gauss-Newton model overestimates the
+curvature (the 1M-Gaussian densified room: 16 passes of 0.03-0.09 px, each lowering the cost by 0.05-0.5 %) the
+longer multiples cover in one pass what took two to four.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from ..costs import cost_from_window
 from ..pose import Pose
 from ..render import Renderer
 
@@ -27,6 +34,7 @@ LAMBDA_MIN = 1e-7
 LAMBDA_MAX = 1e6
 MIN_DECREASE = 1e-4  # a kept step that lowers the cost by less than this fraction ends the polish
 MAX_OUTSIDE = 12  # trials outside the trust region (each only raises the damping, no render)
+LINE_SEARCH = (1.0, 2.0, 4.0)  # multiples of the step scored with the cost alone before a derivative pass
 
 
 @dataclass
@@ -36,7 +44,8 @@ class PolishStats:
     Attributes:
         width / height: scoring size of the polish.
         cost_start / cost: ``cs`` cost at that size, before and after.
-        passes: derivative passes (each is one rendering with derivatives, about 3-4 renders' time).
+        passes: derivative passes (each is one rendering with derivatives, about 3-10 renders' time).
+        renders: plain renders of the line search.
         accepted_steps: trials that lowered the cost.
         step_px: image motion of the last accepted step (pixels at the polish size; 0 if none).
         stopped: "converged" (step below the threshold), "no decrease", "iterations", "trust region".
@@ -49,6 +58,7 @@ class PolishStats:
     cost: float
     passes: int
     accepted_steps: int
+    renders: int
     step_px: float
     stopped: str
     jtj: np.ndarray
@@ -66,13 +76,15 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
 
 def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-           min_step_px: float = 0.01, max_failures: int = 3) -> tuple[Pose, PolishStats]:
+           min_step_px: float = 0.01, max_failures: int = 3,
+           line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:
     """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
 
     Args:
         depth: the scene's median depth in front of the camera (scales translations into pixels).
         iterations: derivative passes at most (the first, at ``pose``, included).
         allowed: the trust-region test.
+        line_search: multiples of each step scored with the cost alone (``()``: none, every trial is a pass).
 
     Returns:
         (the best pose seen, its stats). The pose's cost is never above the start's.
@@ -84,7 +96,7 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
         return float(c[0]), g[0], H[0]
 
     cost, g, H = evaluate(pose)
-    stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0.0, "iterations", H)
+    stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
     lam, failures, outside = LAMBDA0, 0, 0
     while stats.passes < iterations:
         d = np.diag(H)
@@ -108,6 +120,23 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
                 stats.stopped = "trust region"
                 break
             continue
+        if line_search:
+            cands = [(m, pose.perturbed_in_camera(m * xi[:3], m * xi[3:])) for m in line_search]
+            cands = [(m, T) for m, T in cands if m == line_search[0] or allowed(T)]
+            sums = renderer.window_cost(camera, [T for _, T in cands], qstats, background, mask_alpha)
+            stats.renders += len(cands)
+            lc = cost_from_window(sums)
+            j = int(np.argmin(lc))
+            if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
+                lam = min(lam * 10.0, LAMBDA_MAX)
+                failures += 1
+                if failures >= max_failures:
+                    stats.stopped = "no decrease"
+                    break
+                continue
+            m, trial = cands[j]
+            xi = m * xi
+            motion = step_pixels(xi, f, depth)
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:

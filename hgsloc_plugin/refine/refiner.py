@@ -61,7 +61,8 @@ class RefineResult:
         search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
             not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
-        expansions / renders: search effort; levels: per-level details; seconds: wall time.
+        expansions / renders: search effort (renders: every plain render of the query, the polish's line search
+            included); levels: per-level details; seconds: wall time.
         working_set: Gaussians the search rendered (the largest of the query's working-set selections; the whole
             map when it is off); working_set_selections: selections made (0 when off).
         polish: the Levenberg-Marquardt stages run (``refine/polish.py``: size, passes, last step, the 6x6 JtJ
@@ -222,7 +223,7 @@ class Refiner:
         finally:
             if isinstance(renderer, WorkingSet):
                 result.working_set, result.working_set_selections = renderer.largest, renderer.selections
-        result.renders = scorer.renders
+        result.renders = scorer.renders + sum(p.renders for p in result.polish)
         result.seconds = time.perf_counter() - t0
         return result
 

@@ -18,8 +18,8 @@ query, a renderer for the coarse camera over the query's trust region in which
 Merged Gaussians sit in the resident order at their first member's place (the Z-curve locality the kernels
 rely on). Measured on the densified room at 100x75: 4x (195k) at 2 px keeps 70 % of the region's Gaussians at
 35 dB PSNR against the exact map, 10x at 2 / 3 px 46 / 25 % at 32 / 26 dB; the 1M room at 2 px 42 % at 28 dB
-and a coarse render 2.8x faster (``tests/test_lod.py``). Per query (``benchmarks/map_scale.py``) 1.31-1.37x
-from 195k to 1M, but at 1M two of three queries then kept their prior: opt-in
+and a coarse render 2.8x faster (``tests/test_lod.py``). Per query (``benchmarks/map_scale.py``, two runs)
+0.90-1.37x from 195k to 1M, and the 1M outcomes changed with it (better in one run, worse in the other): opt-in
 (``RefineConfig.coarse_lod_pixels``).
 """
 

@@ -49,17 +49,18 @@ class RefineConfig:
             can see (``working_set.WorkingSet``: selected for a region of ``working_set_pixels`` around the
             first poses scored, selected again when the search leaves it; conservative, so the images are
             bit-identical to the whole map's) instead of the whole map per render; only for maps of at least
-            ``working_set_min`` Gaussians (``benchmarks/map_scale.py``, per query vs the whole map, two runs:
-            0.97-1.05x at 49k, 1.07-1.20x at 195k, 1.06x at 488k, 1.04-1.37x at 975k; peak memory 0.42-0.79x;
-            small maps gain little because the projection rejects invisible Gaussians early).
+            ``working_set_min`` Gaussians (``benchmarks/map_scale.py``, per query vs the whole map over three
+            runs: 0.97-1.05x at 49k, 0.87-1.20x at 195k, 1.05-1.06x at 488k, 1.04-1.37x at 975k, within this
+            machine's run-to-run noise below 1M; peak memory 0.42-0.79x; small maps gain little because the
+            projection rejects invisible Gaussians early).
         working_set_pixels: the selection region's radius in image motion at the final scoring size (pixels:
             rotation and camera shift at the median depth); a smaller region keeps fewer Gaussians and is left
             more often.
         coarse_lod_pixels: the coarse (pyramid) levels render a level of detail in which Gaussians of at most
             this many pixels are merged per cell of this size (``lod.py``; approximate, built once per query;
             only with a working set); None (default): the exact map at every level. Measured at 2 px
-            (``benchmarks/map_scale.py``): 1.31-1.37x per query from 195k to 1M Gaussians, but at 1M two of
-            three queries then kept their prior, hence opt-in.
+            (``benchmarks/map_scale.py``, two runs): 0.90-1.37x per query from 195k to 1M Gaussians, and the
+            1M outcomes changed with it (better in one run, worse in the other), hence opt-in.
         polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
             derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
             falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.

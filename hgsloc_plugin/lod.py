@@ -92,10 +92,11 @@ def merge_cells(arrays: dict[str, np.ndarray], depth: np.ndarray, f: float, tau_
     sh_m = np.stack([np.stack([wsum(sh[members, k, c].astype(np.float64)) for c in range(sh.shape[2])], 1)
                      for k in range(sh.shape[1])], 1)
     unit_m = np.bincount(g, w * unit[members], M) / W
-    a_m = np.maximum(cov_m[:, [0, 3, 5]].sum(axis=1), 0.0) / 3.0 / unit_m ** 2 + eps2d
+    tr_m = np.maximum(cov_m[:, [0, 3, 5]].sum(axis=1), 0.0)
+    a_m = tr_m / 3.0 / unit_m ** 2 + eps2d
     cover = np.minimum(o_i * np.minimum(1.0, a_i / a_m[g]), 0.999)
     o_m = 1.0 - np.exp(np.bincount(g, np.log1p(-cover), M))
-    smax_m = np.sqrt(np.maximum(cov_m[:, [0, 3, 5]].sum(axis=1), 0.0))  # >= the largest std. dev.
+    smax_m = np.sqrt(tr_m)  # >= the largest std. dev.
     first = np.full(M, n, np.int64)
     np.minimum.at(first, g, members)
     kept = np.flatnonzero(keep)

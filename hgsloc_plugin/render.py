@@ -19,6 +19,7 @@ import taichi as ti
 
 from .backend import current_arch
 from .camera import Camera
+from .costs import cost_from_window
 from .kernels import RasterConfig, cull, window, window_grad
 from .kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
 from .kernels.layout import Rec, Stat
@@ -183,18 +184,23 @@ class Renderer:
         idx = np.asarray(idx, np.int32)
         if idx.ndim != 1 or idx.size == 0 or np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.n:
             raise ValueError("subset indices must be a non-empty increasing list of Gaussian indices")
-        sub = object.__new__(Renderer)
-        sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
-            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce")})
-        sub.n = int(idx.size)
-        sub.source_index = self.source_index[idx]
+        sub = self._sibling(int(idx.size), self.source_index[idx])
         nd_idx = self._upload(idx, ti.i32)
         for name in ("_means", "_cov3d", "_opac", "_sh", "_smax"):
             src = getattr(self, name)
             dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
             cull.gather_kernel(len(src.shape))(src, nd_idx, dst)
             setattr(sub, name, dst)
-        sub._pool = self._pool  # shared workspaces (kernels take N as an argument or read it from the scene)
+        return sub
+
+    def _sibling(self, n: int, source_index: np.ndarray) -> Renderer:
+        """A renderer of ``n`` other Gaussians (their arrays set by the caller) with this one's config, compiled
+        kernels and workspaces (the pool: kernels take N as an argument or read it from the Gaussians)."""
+        sub = object.__new__(Renderer)
+        sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool")})
+        sub.n = n
+        sub.source_index = np.asarray(source_index)
         return sub
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -209,11 +215,7 @@ class Renderer:
         m = len(arrays["means"])
         if m == 0:
             raise ValueError("no Gaussians")
-        sub = object.__new__(Renderer)
-        sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
-            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool")})
-        sub.n = m
-        sub.source_index = np.asarray(source_index)
+        sub = self._sibling(m, source_index)
         sub._means = self._upload(arrays["means"].astype(np.float32), ti.f32)
         sub._cov3d = self._upload(arrays["cov3d"].astype(np.float32), ti.f32)
         sub._opac = self._upload(arrays["opacities"].astype(np.float32), ti.f32)
@@ -300,8 +302,9 @@ class Renderer:
                    b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
                    pool.isect)
 
-    def _chunks(self, poses: list[Pose]):
-        c = self.chunk
+    def _chunks(self, poses: list[Pose], size: int | None = None):
+        """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""
+        c = size or self.chunk
         for s in range(0, len(poses), c):
             yield poses[s:s + c]
 
@@ -469,16 +472,11 @@ class Renderer:
                                        b["background"], tx, n, g["rgb"], g["alpha"], g["drgb"])
         return g
 
-    def _grad_chunks(self, poses: list[Pose]):
-        c = self.grad_chunk
-        for s in range(0, len(poses), c):
-            yield poses[s:s + c]
-
     def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
         """Colour [B, H, W, 3], alpha [B, H, W] and the colour's derivatives [B, H, W, 3, 6] with respect to the
         pose increment ``xi = (w, v)`` (``Pose.perturbed_in_camera(w, v)``; ``kernels/pose_grad.py``)."""
         rgbs, alphas, ders = [], [], []
-        for part in self._grad_chunks(poses):
+        for part in self._chunks(poses, self.grad_chunk):
             g = self._derivative_images(camera, part, background)
             n = len(part)
             rgbs.append(g["rgb"].to_numpy()[:n])
@@ -502,7 +500,7 @@ class Renderer:
                              f"({camera.height}, {camera.width})")
         costs, grads, hessians = [], [], []
         iu = np.triu_indices(NXI)
-        for part in self._grad_chunks(poses):
+        for part in self._chunks(poses, self.grad_chunk):
             g = self._derivative_images(camera, part, background)
             n = len(part)
             if "w_rows" not in g:
@@ -532,7 +530,7 @@ class Renderer:
             hess = np.zeros((n, NXI, NXI))
             hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]
             hess = hess + np.triu(hess, 1).transpose(0, 2, 1)
-            costs.append(1.0 - sums[:, 0] / np.maximum(sums[:, 1], 1.0))
+            costs.append(cost_from_window(sums))
             grads.append(sys[:, window_grad.NH:] * scale[:, None])
             hessians.append(hess * scale[:, None, None])
         return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)

@@ -1,22 +1,26 @@
-"""Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set.
+"""Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set vs routes.
 
-Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--out FILE]
+Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
 
 The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
 shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
 is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
-process so that its peak memory (max RSS) is its own. Paths:
-- ``whole map``: every render projects, sorts and blends the whole map (``RefineConfig(working_set=False)``);
-- ``working set``: the Gaussians some pose near the poses scored can see (``working_set.WorkingSet``: a region
-  of ``working_set_pixels`` around the first poses scored, selected again when the search leaves it;
-  ``kernels/cull.py``); forced at every size here (the default uses it from ``working_set_min``);
-- ``working set + coarse LOD``: the same, and the coarse (pyramid) levels render a level of detail with
+process so that its peak memory (max RSS) is its own. Paths (``--paths``; default: the first two and the last):
+- ``whole map, search``: the lattice search + polish, every render projecting, sorting and blending the whole map
+  (``RefineConfig(working_set=False, gradient_first=False)``);
+- ``working set, search``: the same search on the Gaussians some pose near the poses scored can see
+  (``working_set.WorkingSet``: a region of ``working_set_pixels`` around the first poses scored, selected again
+  when the search leaves it; ``kernels/cull.py``); forced at every size here (the default: from
+  ``working_set_min``);
+- ``working set + coarse LOD, search``: the same, and the coarse (pyramid) levels render a level of detail with
   Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``RefineConfig.coarse_lod_pixels=2``; opt-in).
+- ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
+  refused (``RefineConfig.gradient_first``).
 
 Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
 largest selection of a query, median) and selections per query,
-renders and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
+renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
 """
 
 from __future__ import annotations
@@ -34,7 +38,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PATHS = ("whole map", "working set", "working set + coarse LOD")
+# path -> RefineConfig fields (the first is the reference of the speed-up column)
+PATHS = {
+    "whole map, search": dict(working_set=False, gradient_first=False),
+    "working set, search": dict(working_set=True, gradient_first=False),
+    "working set + coarse LOD, search": dict(working_set=True, gradient_first=False, coarse_lod_pixels=2.0),
+    "working set, gradient first": dict(working_set=True, gradient_first=True),
+}
+DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
 
 def child(k: int, path: str, queries: int, noise: str) -> dict:
@@ -53,8 +64,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     priors = [apply_protocol(g, noise, rng) for g in gts]
     scene = densify(room, k)
     del room
-    cfg = hp.RefineConfig(working_set=path != "whole map", working_set_min=0,  # forced at every size
-                          coarse_lod_pixels=2.0 if path.endswith("LOD") else None)
+    cfg = hp.RefineConfig(working_set_min=0, **PATHS[path])  # a working set, when on, at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = refiner._plan(cam, priors[0])
@@ -66,7 +76,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     for _ in range(reps):
         renderer.render_full(plan.cam_final, poses)
     ms = 1000 * (time.perf_counter() - t0) / (reps * len(poses))
-    e0, e1, ren, sec, wset, nsel = [], [], [], [], [], []
+    e0, e1, ren, sec, wset, nsel, passes = [], [], [], [], [], [], []
     for img, gt, prior in zip(imgs, gts, priors):
         r = refiner.refine(img, cam, prior)
         e0.append(prior.errors_to(gt))
@@ -75,10 +85,12 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
         sec.append(r.seconds)
         wset.append(r.working_set)
         nsel.append(r.working_set_selections)
+        passes.append(r.derivative_passes)
     e0, e1 = np.array(e0), np.array(e1)
     return {"k": k, "path": path, "gaussians": scene.num_gaussians, "ms_per_render": ms,
             "working_set": float(np.median(wset)),
-            "selections": float(np.mean(nsel)), "renders": float(np.median(ren)), "s_per_query": float(np.mean(sec)),
+            "selections": float(np.mean(nsel)), "renders": float(np.median(ren)),
+            "passes": float(np.median(passes)), "s_per_query": float(np.mean(sec)),
             "before": [float(np.median(e0[:, 0])) * 100, float(np.median(e0[:, 1]))],
             "after": [float(np.median(e1[:, 0])) * 100, float(np.median(e1[:, 1]))],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
@@ -90,19 +102,21 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=3)
     ap.add_argument("--noise", default="3cm,1deg")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--paths", nargs="+", default=list(DEFAULT_PATHS), choices=list(PATHS), metavar="PATH",
+                    help=f"paths to compare, the first is the speed-up reference (any of {list(PATHS)})")
     ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise)))
         return
     lines = [f"Densified demo room, {a.queries} queries, noise {a.noise}; 2 threads unless the machine has more.\n",
-             "| Gaussians | path | ms / render | working set | selections | renders / query | s / query | speed-up | "
-             "before t / R | after t / R | peak RSS (MB) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| Gaussians | path | ms / render | working set | selections | renders / query | derivative passes | "
+             "s / query | speed-up | before t / R | after t / R | peak RSS (MB) |", "|" + "---|" * 12]
     print("\n".join(lines), flush=True)
     t_all = time.time()
     for k in a.k:
         rows = {}
-        for path in PATHS:
+        for path in a.paths:
             out = subprocess.run([sys.executable, __file__, "--child", str(k), path, "--queries", str(a.queries),
                                   "--noise", a.noise], capture_output=True, text=True)
             if out.returncode != 0:
@@ -110,10 +124,10 @@ def main() -> None:
                 raise SystemExit(f"child k={k} {path} failed")
             rows[path] = json.loads(out.stdout.strip().splitlines()[-1])
         for path, r in rows.items():
-            sp = rows["whole map"]["s_per_query"] / r["s_per_query"]
+            sp = rows[a.paths[0]]["s_per_query"] / r["s_per_query"]
             line = (f"| {r['gaussians']:,} | {path} | {r['ms_per_render']:.1f} | {r['working_set']:,.0f} | "
-                    f"{r['selections']:.1f} | "
-                    f"{r['renders']:.0f} | {r['s_per_query']:.2f} | {sp:.2f}x | {r['before'][0]:.2f} / "
+                    f"{r['selections']:.1f} | {r['renders']:.0f} | {r['passes']:.0f} | "
+                    f"{r['s_per_query']:.2f} | {sp:.2f}x | {r['before'][0]:.2f} / "
                     f"{r['before'][1]:.2f} | {r['after'][0]:.2f} / {r['after'][1]:.3f} | {r['peak_rss_mb']:.0f} |")
             lines.append(line)
             print(line, flush=True)

@@ -1,6 +1,7 @@
-"""Refinement modes side by side: search only, search + polish (default), gradient only, the official scheme.
+"""Refinement modes side by side: search only, search + polish, gradient only, gradient first (default), paper.
 
-Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego-queries 6] [--out benchmarks/refine.md]
+Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego-queries 6] [--modes M ...] [--cases C ...]
+       [--out benchmarks/refine.md]
 
 Same queries and priors for every mode, one run. Cases, real photographs first:
 - ``snow``: 6 real phone photos against a 3DGS fitted to other photos (an imperfect map; ../shared/data/snow);
@@ -40,8 +41,9 @@ from hgsloc_plugin.render import get_renderer  # noqa: E402
 
 MODES = {
     "search only": hp.RefineConfig(polish=False),
-    "search + polish (default)": hp.RefineConfig(),
+    "search + polish": hp.RefineConfig.preset("search"),
     "gradient only": hp.RefineConfig.preset("gradient"),
+    "gradient first, then search (default)": hp.RefineConfig(),
 }
 NOISE = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0))
 SWEEP = ((1.0, 0.5), (3.0, 1.0), (5.0, 2.0), (10.0, 3.0), (20.0, 5.0), (30.0, 10.0))
@@ -124,7 +126,7 @@ def priors_for(gts, scale, seed=0) -> dict:
     return out
 
 
-def run_case(label, scene, cam, gts, imgs, scale, bg, lines, modes=MODES) -> None:
+def run_case(label, scene, cam, gts, imgs, scale, bg, lines, modes) -> None:
     lines += [f"\n### {label}: {len(gts)} queries, {scene.num_gaussians} Gaussians\n"] + HEADER
     print("\n".join(lines[-3:]), flush=True)
     cost = PassCost(scene, cam, gts[0], imgs[0], hp.RefineConfig(background=bg))
@@ -145,29 +147,31 @@ def main() -> None:
     ap.add_argument("--paper-queries", type=int, default=2)
     ap.add_argument("--lego-queries", type=int, default=6)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "refine.md"))
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES), metavar="MODE",
+                    help=f"modes to run (default: all of {list(MODES)})")
     ap.add_argument("--cases", nargs="+", default=["snow", "lego", "room", "paper", "sweep"],
                     choices=["snow", "lego", "room", "paper", "sweep"])
     a = ap.parse_args()
     hp.init()
     t_start = time.time()
     lines: list[str] = []
+    modes = {m: MODES[m] for m in a.modes}
     snow = load_dataset("snow") if "snow" in a.cases else None
     if snow is not None:
         cam, scene, qs, bg = snow
         qs = qs[: a.queries]
         run_case("snow (real photos; 7-Scenes-equivalent cm)", scene, cam, [q[1] for q in qs], [q[2] for q in qs],
-                 [200.0 / q[3] for q in qs], bg, lines)
+                 [200.0 / q[3] for q in qs], bg, lines, modes)
     lego = load_dataset("lego") if "lego" in a.cases else None
     if lego is not None and a.lego_queries > 0:
         cam, scene, qs, bg = lego
         qs = qs[: a.lego_queries]
         run_case("lego (held-out renders, white background; 7-Scenes-equivalent cm)", scene, cam, [q[1] for q in qs],
-                 [q[2] for q in qs], [200.0 / q[3] for q in qs], bg, lines)
+                 [q[2] for q in qs], [200.0 / q[3] for q in qs], bg, lines, modes)
     scene = make_room_scene()
     cam = QUERY_CAMERA
     gts = query_poses(a.queries, seed=1)
     imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
-    modes = dict(MODES)
     paper = hp.RefineConfig.preset("paper", paper_step_q=2e-4, paper_step_t=2e-3, score_max_side=160)
     if "room" in a.cases:
         run_case("demo room (photo-degraded renders; cm)", scene, cam, gts, imgs, [100.0] * len(gts),
@@ -201,7 +205,7 @@ def sweep_rows(scene, cam, gts, imgs, cost, lines) -> None:
         rng = np.random.default_rng(int(10 * cm + deg) + 7)
         ps = [se3_noise(g, deg, cm / 100.0, rng) for g in gts]
         cells = []
-        for mode in ("gradient only", "search + polish (default)"):
+        for mode in ("gradient only", "search + polish"):
             m = evaluate(hp.HGSLocPlugin(scene, MODES[mode]), cam, gts, imgs, ps, [100.0] * len(gts), cost)
             ok = (m["e1"][:, 0] < 1.0) & (m["e1"][:, 1] < 0.5)
             cells += [f"{ok.sum()} / {len(ok)}", f"{np.median(m['e1'][:, 0]):.2f} / {np.median(m['e1'][:, 1]):.3f}"]

@@ -64,7 +64,8 @@ def cmd_refine(args) -> int:
 
 
 def summary_line(t: dict, out) -> str:
-    """One line: refined, kept (per reason), failed, median confidence, effort."""
+    """One line: refined, kept (per reason), failed, median confidence, effort (renders, queries that needed the
+    lattice search, seconds)."""
     kept = sum(t.get("rejected", {}).values())
     why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
     conf, st, sr = t.get("median_confidence"), t.get("median_sigma_t"), t.get("median_sigma_r_deg")
@@ -72,7 +73,7 @@ def summary_line(t: dict, out) -> str:
     return (f"refined {t['accepted']} / {t['queries']} queries, kept the prior for {kept}"
             + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
             + (f"{conf:.2f}" if conf is not None else "-") + sig
-            + f"; {t['renders']} renders, {t['seconds']:.1f} s -> {out}")
+            + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
 
 
 _LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -213,7 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
-    r.add_argument("--config", default="default", help="preset: default, fast, accurate, gradient, paper")
+    r.add_argument("--config", default="default", help="preset: default (gradient first, the search when it is "
+                                                       "refused), search (always search), fast, accurate, gradient, "
+                                                       "paper")
     r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
     r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
     r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "

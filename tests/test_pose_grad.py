@@ -252,10 +252,14 @@ def test_refine_reports_polish_and_gradient_preset():
     img = degrade(hp.render(scene, cam, gt), np.random.default_rng(0))
     prior = gt.perturbed_in_camera(np.radians([0.5, -0.4, 0.3]), [0.02, -0.01, 0.01])
     res = {}
-    for name, cfg in (("search", hp.RefineConfig(polish=False)), ("default", hp.RefineConfig()),
-                      ("gradient", hp.RefineConfig.preset("gradient"))):
+    for name, cfg in (("search", hp.RefineConfig(polish=False)), ("default", hp.RefineConfig.preset("search")),
+                      ("gradient", hp.RefineConfig.preset("gradient")), ("first", hp.RefineConfig())):
         res[name] = hp.HGSLocPlugin(scene, cfg).refine(img, cam, prior)
-    s, d, g = res["search"], res["default"], res["gradient"]
+    s, d, g, f = res["search"], res["default"], res["gradient"], res["first"]
+    # gradient first (the default): the gradient route's pose is accepted, so no search runs: the gradient preset's
+    assert f.route == "gradient" and f.gradient_rejected is None and f.expansions == 0
+    assert np.array_equal(f.pose.as_array(), g.pose.as_array()) and f.renders == g.renders
+    assert d.route == "search" and d.expansions > 0 and f.renders < 0.5 * d.renders, (f.renders, d.renders)
     assert s.polish == [] and s.derivative_passes == 0
     assert len(d.polish) == 1 and d.derivative_passes == d.polish[0].passes >= 2
     st = d.polish[0]
@@ -271,6 +275,30 @@ def test_refine_reports_polish_and_gradient_preset():
         assert r.accepted
         t, a = r.pose.errors_to(gt)
         assert t < 0.005 and a < 0.1, (t, a)
+
+
+def test_gradient_first_falls_back_to_the_search_and_skips_it_at_a_settled_prior():
+    """gradient_first: a prior beyond the gradient's reach (20 cm / 7 deg in the room) is refused on the gradient
+    route and found by the search; a prior at the truth sits in a sharp, aligned minimum: no search is run."""
+    from hgsloc_plugin.refine.trust import settled
+
+    scene = make_room_scene()
+    cam = hp.Camera.from_fov(160, 120, 65.0)
+    gt = query_poses(1, seed=2)[0]
+    img = degrade(hp.render(scene, cam, gt), np.random.default_rng(0))
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig())  # gradient_first is the default
+    far = gt.perturbed_in_camera(np.radians([5.0, -4.0, 3.0]), [0.15, -0.1, 0.1])
+    r = refiner.refine(img, cam, far)
+    assert r.gradient_rejected is not None and r.route == "search" and r.expansions > 0
+    assert len(r.polish) >= 3  # the gradient route's stages, then the search's polish
+    assert r.accepted and r.rejected is None
+    t, a = r.pose.errors_to(gt)
+    assert t < 0.005 and a < 0.1, (t, a)
+    assert r.to_dict()["route"] == "search" and r.to_dict()["gradient_rejected"] == r.gradient_rejected
+    at_truth = refiner.refine(img, cam, gt)
+    assert not at_truth.accepted and at_truth.rejected is not None
+    assert settled(at_truth.assessment) and at_truth.route == "gradient" and at_truth.expansions == 0
+    assert np.array_equal(at_truth.pose.as_array(), gt.as_array())
 
 
 def test_gradient_only_needs_the_cs_metric():

@@ -15,7 +15,7 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.cli import parse_angle, parse_length
 from hgsloc_plugin.noise import se3_noise
-from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess
+from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
 
 from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
 
@@ -39,6 +39,18 @@ def test_acceptance_rule_reasons(initial, best, rises, travel, level_shift, reas
     assert a.rejected == reason
     assert (a.confidence > 0) == (reason is None)
     assert 0.0 <= a.confidence <= 1.0
+
+
+@pytest.mark.parametrize("best, rises, travel, is_settled", [
+    (1.0 - 0.5 * 0.01, GOOD_RISES, 0.1, True),  # insignificant drop in a sharp, aligned minimum
+    (1.0, GOOD_RISES, 0.1, True),  # no drop at all (the prior is the minimum)
+    (0.9, GOOD_RISES, 0.1, False),  # accepted: not a refusal
+    (1.0, np.r_[np.full(11, 0.01), -0.001], 0.1, False),  # a 1-px move descends: not a minimum
+    (1.0, np.full(12, 0.001), 0.1, False),  # flat at a high level: aligned with nothing
+    (1.0, GOOD_RISES, 0.95, False),  # at the trust region's edge
+])
+def test_settled_prior_is_only_an_insignificant_but_sound_minimum(best, rises, travel, is_settled):
+    assert settled(assess(1.0, best, rises, travel, 0.5, check_alignment=True)) is is_settled
 
 
 def test_confidence_grows_with_significance_and_sharpness():
@@ -176,6 +188,9 @@ def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path
         assert q["accepted"] == (q["rejected"] is None)
         # a refined pose carries its uncertainty (strict JSON: null when not refined)
         assert (q["sigma_t"] is not None and q["sigma_t"] > 0) == q["accepted"], q
+        assert q["route"] in ("gradient", "search") and (q["gradient_rejected"] is None) == (q["route"] == "gradient")
+    searched = sum(q["route"] == "search" for q in rep["queries"].values())
+    assert rep["totals"]["searched"] == searched and f"{searched} searched" in out[0]
     assert rep["totals"]["accepted"] >= 1  # the tiny case's priors (a few pixels off) are refined
     assert rep["totals"]["median_sigma_t"] > 0 and "median sigma" in out[0]
     p = _run_cli(["render", "--scene", str(d / "scene.ply"), "--pose", "1 0 0 0 0 0 0", "--camera",

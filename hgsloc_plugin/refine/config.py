@@ -64,6 +64,15 @@ class RefineConfig:
         polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
             derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
             falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.
+        gradient_first: try the gradient-only route first (Levenberg-Marquardt from the coarse pose, as with
+            ``search=False``) and run the lattice search + polish only when its pose fails the acceptance rule
+            (``RefineResult.route``, ``gradient_rejected``); a coarse pose refused only as insignificant in a
+            sharp, well-aligned minimum (``trust.settled``) is kept without a search. Measured
+            (``benchmarks/refine.py``, ``benchmarks/trust.py``): the same returned poses as search + polish on
+            every row of the real snow photos, lego, the room and the donut, with 1.7-2.6x fewer
+            render-equivalents for priors up to 10 cm / 3 deg on snow and the room; priors the gradient cannot
+            reach (30 cm / 10 deg, one lego query at 10 cm) pay both routes (about 2x). False: always search
+            (the "search" preset).
         polish_iterations: derivative passes at most per polish (one pass costs 2-10 renders of the search,
             growing with the polish size). Far from the minimum the steps are short: on the donut a polish from
             3.5 cm-eq took 13 passes to 0.05 cm-eq (8 stopped half way).
@@ -102,6 +111,7 @@ class RefineConfig:
     working_set_pixels: float = 8.0
     coarse_lod_pixels: float | None = None
     polish: bool = True
+    gradient_first: bool = True
     polish_iterations: int = 16
     polish_max_side: int = 320
     search: bool = True
@@ -150,7 +160,7 @@ class RefineConfig:
 
     @staticmethod
     def preset(name: str, **overrides) -> RefineConfig:
-        """A named preset ("default", "fast", "accurate", "gradient", "paper"), with optional field overrides."""
+        """A named preset ("default", "fast", "accurate", "gradient", "search", "paper"), with field overrides."""
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
         return dataclasses.replace(PRESETS[name], **overrides)
@@ -178,6 +188,8 @@ PRESETS: dict[str, RefineConfig] = {
     "default": RefineConfig(),
     # Levenberg-Marquardt from the coarse pose, no lattice search (where each part is needed: benchmarks/).
     "gradient": RefineConfig(search=False),
+    # Always the lattice search + polish (no gradient-first route).
+    "search": RefineConfig(gradient_first=False),
     "fast": RefineConfig(max_expansions_per_level=15, max_expansions=60, score_max_side=120, polish_iterations=4,
                          polish_max_side=240),
     "accurate": RefineConfig(level_pixels=(6.0, 3.0, 1.5, 0.75), max_expansions_per_level=40, max_expansions=280,

@@ -19,10 +19,10 @@ from ..render import get_renderer
 from ..scene import GaussianScene
 from ..working_set import WorkingSet
 from .config import RefineConfig
-from .polish import PolishStats, polish
+from .polish import MIN_STEP_PX, STAGE_STEP_PX, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
-from .trust import Assessment, assess, pose_uncertainty
+from .trust import Assessment, assess, pose_uncertainty, settled
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -65,6 +65,9 @@ class RefineResult:
             included); levels: per-level details; seconds: wall time.
         working_set: Gaussians the search rendered (the largest of the query's working-set selections; the whole
             map when it is off); working_set_selections: selections made (0 when off).
+        route: how the returned verdict was reached: "gradient" (the polish alone from the coarse pose, with
+            ``gradient_first`` or search off) or "search" (the lattice search + polish); gradient_rejected: why the
+            gradient route's pose was refused before the search ran (``gradient_first`` only), else None.
         polish: the Levenberg-Marquardt stages run (``refine/polish.py``: size, passes, last step, the 6x6 JtJ
             at the solution); empty when off. ``derivative_passes``: their derivative passes in all.
         history: best cost after each expansion (costs of different levels may use different resolutions).
@@ -94,6 +97,8 @@ class RefineResult:
     working_set: int = 0
     working_set_selections: int = 0
     polish: list[PolishStats] = field(default_factory=list)
+    route: str | None = None
+    gradient_rejected: str | None = None
 
     @property
     def derivative_passes(self) -> int:
@@ -114,7 +119,8 @@ class RefineResult:
             "cost_final": self.cost_final, "expansions": self.expansions, "renders": self.renders,
             "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
             "working_set_selections": self.working_set_selections,
-            "derivative_passes": self.derivative_passes, "polish": [p.to_dict() for p in self.polish],
+            "derivative_passes": self.derivative_passes, "route": self.route,
+            "gradient_rejected": self.gradient_rejected, "polish": [p.to_dict() for p in self.polish],
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
             "assessment": self.assessment.to_dict() if self.assessment else None,
@@ -229,18 +235,35 @@ class Refiner:
 
     def _run(self, plan: _Plan, renderer, scorer: Scorer, img: np.ndarray, coarse_pose: Pose,
              result: RefineResult) -> None:
-        """The search, the polish and the acceptance rule of one query; fills ``result``."""
+        """The search, the polish and the acceptance rule of one query; fills ``result``. With
+        ``gradient_first``, the gradient-only route is tried first; the search runs only when its pose is
+        rejected, unless the coarse pose already sits in a sharp, well-aligned minimum (``trust.settled``)."""
+        cfg = self.config
+        if cfg.gradient_first and cfg.search and cfg.polishes and cfg.acceptance == "trust":
+            self._attempt(plan, renderer, scorer, img, coarse_pose, result, search=False)
+            if result.accepted or (result.assessment is not None and settled(result.assessment)):
+                result.route = "gradient"
+                return
+            logger.debug("query %s: gradient route rejected (%s); searching", result.name, result.rejected)
+            result.gradient_rejected = result.rejected
+        self._attempt(plan, renderer, scorer, img, coarse_pose, result, search=cfg.search)
+        result.route = "search" if cfg.search else "gradient"
+
+    def _attempt(self, plan: _Plan, renderer, scorer: Scorer, img: np.ndarray, coarse_pose: Pose,
+                 result: RefineResult, search: bool) -> None:
+        """One route (the lattice search + polish, or the polish alone from the coarse pose) and the acceptance
+        rule on its pose; sets the verdict fields of ``result`` (a later route overwrites them)."""
         cfg = self.config
         name = result.name
-        scorer.set_query(plan.cam_final, img)
+        scorer.set_query(plan.cam_final, img, renderer=renderer)
         result.cost_initial = float(scorer([coarse_pose])[0])
-        if cfg.search:
+        if search:
             best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
         else:
             best_pose, best_cost, after_coarse = coarse_pose, result.cost_initial, coarse_pose
         judge_cam = plan.cam_final
         if cfg.polishes:
-            best_pose = self._polish(plan, renderer, img, best_pose, coarse_pose, result)
+            best_pose = self._polish(plan, renderer, img, best_pose, coarse_pose, result, search)
             # the rule judges where the candidate is a minimum: at the polish's size (a pose polished at the
             # query's own pixels is not the minimum of the 200 px cost, whose one-pixel moves may then descend)
             judge_cam = plan.cam_polish
@@ -249,6 +272,7 @@ class Refiner:
                 result.cost_initial = float(scorer([coarse_pose])[0])
             best_cost = float(scorer([best_pose])[0])
         result.search_pose, result.search_cost = best_pose, best_cost
+        result.rejected, result.assessment, result.confidence = None, None, 0.0
         if cfg.acceptance == "trust" and cfg.neighbourhood == "lattice":
             result.assessment = self._assess(plan, judge_cam, scorer, coarse_pose, after_coarse, best_pose,
                                              best_cost, result.cost_initial)
@@ -265,8 +289,8 @@ class Refiner:
                 result.confidence = math.nan
         else:
             result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
-            logger.debug("query %s: search pose rejected (%s): %s", name, result.rejected,
-                         result.assessment.to_dict() if result.assessment else {})
+            logger.debug("query %s: %s pose rejected (%s): %s", name, "search" if search else "gradient",
+                         result.rejected, result.assessment.to_dict() if result.assessment else {})
 
     def _working_set(self, plan: _Plan, coarse: Pose):
         """The renderer the search uses: a :class:`WorkingSet` that follows the poses scored (region radius
@@ -281,18 +305,20 @@ class Refiner:
                           math.degrees(px / f))
 
     def _polish(self, plan: _Plan, renderer, img: np.ndarray, pose: Pose, coarse: Pose,
-                result: RefineResult) -> Pose:
+                result: RefineResult, search: bool) -> Pose:
         """Levenberg-Marquardt on the cs cost (``refine/polish.py``) at the polish size; without the search
         (gradient only), coarse to fine over the coarse, final and polish sizes. Appends to ``result.polish``."""
         cfg = self.config
         cams = [plan.cam_polish]
-        if not cfg.search:
+        if not search:
             cams = list(dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish]))
         allowed = self._trust_region(coarse, plan.max_t, plan.max_r)
-        for cam in cams:
+        for i, cam in enumerate(cams):
             q = renderer.upload_window_query(resize_image(img, cam.width, cam.height))
+            last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
             pose, stats = polish(renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
-                                 allowed=allowed, background=cfg.background, mask_alpha=cfg.mask_alpha)
+                                 allowed=allowed, background=cfg.background, mask_alpha=cfg.mask_alpha,
+                                 min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX)
             result.polish.append(stats)
         return pose
 

@@ -104,6 +104,14 @@ class Assessment:
         return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in vars(self).items()}
 
 
+def settled(a: Assessment) -> bool:
+    """Whether a pose refused only for lack of improvement sits in a sharp, well-aligned minimum (every other
+    test passes): the coarse pose is already as good as the map can tell, so a search from it is not run
+    (``RefineConfig.gradient_first``)."""
+    return (a.rejected in ("insignificant", "no improvement") and a.sharpness >= MIN_SHARPNESS
+            and not a.alignment < MIN_ALIGNMENT and a.travel <= EDGE_FRACTION and a.level_shift <= MAX_LEVEL_SHIFT)
+
+
 def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: float, level_shift: float, *,
            check_alignment: bool = False) -> Assessment:
     """Apply the acceptance rule.

@@ -347,3 +347,26 @@ def test_cs_gradient_and_jtj_are_the_chain_rule_through_the_reference_window(nam
     S = np.diag(px)
     A, B = S @ H[0] @ S, S @ H_ref @ S
     assert np.linalg.norm(A - B) < 2e-3 * np.linalg.norm(B), (A, B)
+
+
+def test_line_search_extends_past_the_longest_multiple(monkeypatch):
+    """With the Hessian overstated 40x (the 1M-Gaussian room's polish crawled like this), even 4 steps cover a
+    tenth of the way: the line search goes on doubling while the longest multiple is the best, so the polish
+    needs far fewer derivative passes than with the multiples 1, 2, 4 alone, and ends at the minimum."""
+    import hgsloc_plugin.refine.polish as polish_mod
+
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    fake = _QuadraticCost(target, 40.0)
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True)
+    monkeypatch.setattr(polish_mod, "MAX_MULTIPLE", 4.0)  # no extension
+    pose4, st4 = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True)
+    assert st.cost <= st4.cost * (1 + 1e-9) and st.passes < 0.5 * st4.passes, (st.passes, st4.passes)
+    assert st.renders > 3 * st.passes  # the extensions were scored (plain renders)
+    assert pose.errors_to(target)[0] < 1e-3 and st.cost == pytest.approx(fake.cost(pose))
+    # a region that forbids the longer steps stops the extension: the result stays inside it
+    c0 = start.centre()
+    inside = lambda p: np.linalg.norm(p.centre() - c0) <= 0.01  # noqa: E731
+    pose_r, _ = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=inside)
+    assert np.linalg.norm(pose_r.centre() - c0) <= 0.01

@@ -4,7 +4,8 @@ Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its
 Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves ``(JtJ + lambda
 diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a trial is kept only when
 its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks; otherwise ``lambda`` grows
-and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion or a kept
+and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion (times the
+multiple the line search last needed) or a kept
 step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected trials in a row, or
 after ``iterations`` passes. A trial outside the trust region is not rendered: the damping grows until the step fits
 (or the polish stops, "trust region").
@@ -13,7 +14,11 @@ Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
 lowers the cost the trial fails without a derivative pass. On a map whose Gauss-Newton model overestimates the
 curvature (the 1M-Gaussian densified room: 16 passes of 0.03-0.09 px, each lowering the cost by 0.05-0.5 %) the
-longer multiples cover in one pass what took two to four.
+longer multiples cover in one pass what took two to four. When the longest is the best, the search goes on
+(``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the trust region) while the
+cost falls, and the convergence test scales the next step by the multiple the last one needed (a Gauss-Newton
+step 40x too short is not convergence). On the 1M room this took the gradient route from 19-20 passes ending
+off the minimum ("flat valley") to 8-14 converged ones.
 """
 
 from __future__ import annotations
@@ -35,6 +40,8 @@ LAMBDA_MAX = 1e6
 MIN_DECREASE = 1e-4  # a kept step that lowers the cost by less than this fraction ends the polish
 MAX_OUTSIDE = 12  # trials outside the trust region (each only raises the damping, no render)
 LINE_SEARCH = (1.0, 2.0, 4.0)  # multiples of the step scored with the cost alone before a derivative pass
+EXTEND = (2.0, 4.0)  # when the longest multiple is the best, the next ones (x its length), one batch at a time
+MAX_MULTIPLE = 64.0
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on.
 # Measured (benchmarks/refine.py, gradient first): 1.3-1.6x fewer render-equivalents on snow, equal errors.
@@ -101,7 +108,7 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
 
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
-    lam, failures, outside = LAMBDA0, 0, 0
+    lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
     while stats.passes < iterations:
         d = np.diag(H)
         A = H + lam * np.diag(np.maximum(d, 1e-12 * max(float(d.max()), 1e-30)))
@@ -113,7 +120,7 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
             stats.stopped = "no decrease"
             break
         motion = step_pixels(xi, f, depth)
-        if motion < min_step_px:
+        if motion * reach < min_step_px:  # reach: the multiple the last kept step needed (GN steps run short)
             stats.stopped = "converged"
             break
         trial = pose.perturbed_in_camera(xi[:3], xi[3:])
@@ -138,7 +145,23 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
                     stats.stopped = "no decrease"
                     break
                 continue
+            while j == len(cands) - 1 and cands[j][0] < MAX_MULTIPLE:  # the longest was best: go further
+                m_last = cands[j][0]
+                more = [(k * m_last, pose.perturbed_in_camera(k * m_last * xi[:3], k * m_last * xi[3:]))
+                        for k in EXTEND]
+                more = [(m, T) for m, T in more if allowed(T)]
+                if not more:
+                    break
+                mc = cost_from_window(renderer.window_cost(camera, [T for _, T in more], qstats, background,
+                                                          mask_alpha))
+                stats.renders += len(more)
+                cands, lc = cands + more, np.concatenate([lc, mc])
+                j2 = int(np.argmin(lc))
+                if j2 == j:
+                    break
+                j = j2
             m, trial = cands[j]
+            reach = m
             xi = m * xi
             motion = step_pixels(xi, f, depth)
         c2, g2, H2 = evaluate(trial)

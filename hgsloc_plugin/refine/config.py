@@ -70,11 +70,10 @@ class RefineConfig:
             sharp, well-aligned minimum (``trust.settled``) is kept without a search. Measured
             (``benchmarks/refine.py``, ``benchmarks/trust.py``): the same outcomes as search + polish on every
             row of the real snow photos, lego, the room and the donut, with 2.0-3.0x fewer render-equivalents on
-            snow and 1.4-3.1x on the room (two runs) (priors from the truth to 10 cm / 3 deg), 2.4-3.9x on lego up to
-            3 cm (0.8x at 10 cm: a query the gradient cannot reach pays both routes, as do 30 cm / 10 deg
-            priors), and 1.64x less time per query on the 1M-Gaussian room (``benchmarks/map_scale.py``).
-            False: always search
-            (the "search" preset).
+            snow and 1.4-3.1x on the room over two runs (priors from the truth to 10 cm / 3 deg), 2.4-3.9x on
+            lego up to 3 cm (0.8x at 10 cm: a query the gradient cannot reach pays both routes, as do 30 cm /
+            10 deg priors), and 1.64x less time per query on the 1M-Gaussian room (``benchmarks/map_scale.py``).
+            False: always search (the "search" preset).
         polish_iterations: derivative passes at most per polish (one pass costs 2-10 renders of the search,
             growing with the polish size). Far from the minimum the steps are short: on the donut a polish from
             3.5 cm-eq took 13 passes to 0.05 cm-eq (8 stopped half way).

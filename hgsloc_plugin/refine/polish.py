@@ -4,11 +4,10 @@ Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its
 Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves ``(JtJ + lambda
 diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a trial is kept only when
 its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks; otherwise ``lambda`` grows
-and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion (times the
-multiple the line search last needed) or a kept
-step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected trials in a row, or
-after ``iterations`` passes. A trial outside the trust region is not rendered: the damping grows until the step fits
-(or the polish stops, "trust region").
+and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion (times
+the multiple the line search last needed) or a kept step that lowers the cost by less than ``MIN_DECREASE`` of
+it, after ``max_failures`` rejected trials in a row, or after ``iterations`` passes. A trial outside the trust
+region is not rendered: the damping grows until the step fits (or the polish stops, "trust region").
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
@@ -18,7 +17,7 @@ longer multiples cover in one pass what took two to four. When the longest is th
 (``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the trust region) while the
 cost falls, and the convergence test scales the next step by the multiple the last one needed (a Gauss-Newton
 step 40x too short is not convergence). On the 1M room this took the gradient route from 19-20 passes ending
-off the minimum ("flat valley") to 8-14 converged ones.
+off the minimum ("flat valley") to 10-17 converged ones.
 """
 
 from __future__ import annotations
@@ -44,7 +43,8 @@ EXTEND = (2.0, 4.0)  # when the longest multiple is the best, the next ones (x i
 MAX_MULTIPLE = 64.0
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on.
-# Measured (benchmarks/refine.py, gradient first): 1.3-1.6x fewer render-equivalents on snow, equal errors.
+# Measured (benchmarks/refine.py, gradient first, before the line search extended): 1.3-1.6x fewer
+# render-equivalents on snow, equal errors.
 STAGE_STEP_PX = 0.25
 
 

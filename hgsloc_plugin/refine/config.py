@@ -72,7 +72,8 @@ class RefineConfig:
             row of the real snow photos, lego, the room and the donut, with 2.0-3.0x fewer render-equivalents on
             snow and 1.4-3.1x on the room over two runs (priors from the truth to 10 cm / 3 deg), 2.4-3.9x on
             lego up to 3 cm (0.8x at 10 cm: a query the gradient cannot reach pays both routes, as do 30 cm /
-            10 deg priors), and 1.64x less time per query on the 1M-Gaussian room (``benchmarks/map_scale.py``).
+            10 deg priors), and 1.28-1.64x less time per query on the 1M-Gaussian room (``benchmarks/map_scale.py``,
+            two runs).
             False: always search (the "search" preset).
         polish_iterations: derivative passes at most per polish (one pass costs 2-10 renders of the search,
             growing with the polish size). Far from the minimum the steps are short: on the donut a polish from

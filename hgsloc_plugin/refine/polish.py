@@ -106,6 +106,14 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
         c, g, H = renderer.pose_gradient(camera, [T], qstats, background, mask_alpha)
         return float(c[0]), g[0], H[0]
 
+    def multiples(ms, at: Pose, step: np.ndarray) -> list[tuple[float, Pose]]:
+        return [(m, at.perturbed_in_camera(m * step[:3], m * step[3:])) for m in ms]
+
+    def score(cands: list[tuple[float, Pose]]) -> np.ndarray:
+        """Costs of line-search trials, from plain renders (counted in ``stats.renders``)."""
+        stats.renders += len(cands)
+        return cost_from_window(renderer.window_cost(camera, [T for _, T in cands], qstats, background, mask_alpha))
+
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
     lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
@@ -132,11 +140,8 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
                 break
             continue
         if line_search:
-            cands = [(m, pose.perturbed_in_camera(m * xi[:3], m * xi[3:])) for m in line_search]
-            cands = [(m, T) for m, T in cands if m == line_search[0] or allowed(T)]
-            sums = renderer.window_cost(camera, [T for _, T in cands], qstats, background, mask_alpha)
-            stats.renders += len(cands)
-            lc = cost_from_window(sums)
+            cands = [(m, T) for m, T in multiples(line_search, pose, xi) if m == line_search[0] or allowed(T)]
+            lc = score(cands)
             j = int(np.argmin(lc))
             if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
                 lam = min(lam * 10.0, LAMBDA_MAX)
@@ -146,16 +151,10 @@ def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: flo
                     break
                 continue
             while j == len(cands) - 1 and cands[j][0] < MAX_MULTIPLE:  # the longest was best: go further
-                m_last = cands[j][0]
-                more = [(k * m_last, pose.perturbed_in_camera(k * m_last * xi[:3], k * m_last * xi[3:]))
-                        for k in EXTEND]
-                more = [(m, T) for m, T in more if allowed(T)]
+                more = [(m, T) for m, T in multiples([k * cands[j][0] for k in EXTEND], pose, xi) if allowed(T)]
                 if not more:
                     break
-                mc = cost_from_window(renderer.window_cost(camera, [T for _, T in more], qstats, background,
-                                                          mask_alpha))
-                stats.renders += len(more)
-                cands, lc = cands + more, np.concatenate([lc, mc])
+                cands, lc = cands + more, np.concatenate([lc, score(more)])
                 j2 = int(np.argmin(lc))
                 if j2 == j:
                     break

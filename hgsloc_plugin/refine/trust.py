@@ -108,8 +108,22 @@ def settled(a: Assessment) -> bool:
     """Whether a pose refused only for lack of improvement sits in a sharp, well-aligned minimum (every other
     test passes): the coarse pose is already as good as the map can tell, so a search from it is not run
     (``RefineConfig.gradient_first``)."""
-    return (a.rejected in ("insignificant", "no improvement") and a.sharpness >= MIN_SHARPNESS
-            and not a.alignment < MIN_ALIGNMENT and a.travel <= EDGE_FRACTION and a.level_shift <= MAX_LEVEL_SHIFT)
+    return (a.rejected in ("insignificant", "no improvement")
+            and _shape_reason(a.alignment, a.sharpness, a.travel, a.level_shift, not math.isnan(a.alignment)) is None)
+
+
+def _shape_reason(alignment: float, sharpness: float, travel: float, level_shift: float,
+                  check_alignment: bool) -> str | None:
+    """The rule's tests after the improvement ones, in order: the first that fails, or None."""
+    if check_alignment and not alignment >= MIN_ALIGNMENT:
+        return "weak alignment"
+    if not sharpness >= MIN_SHARPNESS:
+        return "flat valley"
+    if travel > EDGE_FRACTION:
+        return "trust-region edge"
+    if level_shift > MAX_LEVEL_SHIFT:
+        return "level inconsistency"
+    return None
 
 
 def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: float, level_shift: float, *,
@@ -134,16 +148,8 @@ def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: flo
         reason = "no improvement"
     elif not significance >= MIN_SIGNIFICANCE:
         reason = "insignificant"
-    elif check_alignment and not alignment >= MIN_ALIGNMENT:
-        reason = "weak alignment"
-    elif not sharpness >= MIN_SHARPNESS:
-        reason = "flat valley"
-    elif travel > EDGE_FRACTION:
-        reason = "trust-region edge"
-    elif level_shift > MAX_LEVEL_SHIFT:
-        reason = "level inconsistency"
     else:
-        reason = None
+        reason = _shape_reason(alignment, sharpness, travel, level_shift, check_alignment)
     conf = 0.0
     if reason is None:
         conf = min(1.0, significance / 4.0) * min(1.0, sharpness / 0.1) * (1.0 - min(travel, 1.0) ** 4)

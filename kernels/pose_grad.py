@@ -39,22 +39,6 @@ DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in dpacked (times NXI)
 NDER = 5 * NXI
 
 
-@ti.func
-def _hat(k: ti.template()):
-    """[e_k]x for k = 0, 1, 2 (static)."""
-    m = ti.Matrix.zero(ti.f32, 3, 3)
-    if ti.static(k == 0):
-        m[1, 2] = -1.0
-        m[2, 1] = 1.0
-    elif ti.static(k == 1):
-        m[0, 2] = 1.0
-        m[2, 0] = -1.0
-    else:
-        m[0, 1] = -1.0
-        m[1, 0] = 1.0
-    return m
-
-
 @functools.cache
 def projection_grad_kernel(config: RasterConfig):
     """Compiled ``projection_grad``.
@@ -102,22 +86,19 @@ def projection_grad_kernel(config: RasterConfig):
             c11 = cov2[1, 1] + eps2d
             inv_det = 1.0 / (c00 * c11 - c01 * c01)
             Q = ti.Matrix([[c11 * inv_det, -c01 * inv_det], [-c01 * inv_det, c00 * inv_det]])
-            for k in ti.static(range(NXI)):
-                dp = ti.Vector([0.0, 0.0, 0.0])
-                dSc = ti.Matrix.zero(ti.f32, 3, 3)
-                if ti.static(k < 3):
-                    Wk = _hat(k)
-                    dp = Wk @ p
-                    dSc = Wk @ Sc - Sc @ Wk
-                else:
-                    dp[k - 3] = 1.0
+            JS = J @ Sc
+            for k in range(NXI):  # a run-time loop: one copy of the body (loading time), exact 0/1 increments
+                w = ti.Vector([ti.select(k == 0, 1.0, 0.0), ti.select(k == 1, 1.0, 0.0), ti.select(k == 2, 1.0, 0.0)])
+                Wk = ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])  # [w]x
+                dp = Wk @ p + ti.Vector([ti.select(k == 3, 1.0, 0.0), ti.select(k == 4, 1.0, 0.0),
+                                         ti.select(k == 5, 1.0, 0.0)])
+                dSc = Wk @ Sc - Sc @ Wk
                 dz = dp[2]
                 drz = -dz * rz * rz
                 dtx = free_x * dp[0] + (1.0 - free_x) * ux * dz
                 dty = free_y * dp[1] + (1.0 - free_y) * vy * dz
                 dJ = ti.Matrix([[fx * drz, 0.0, -fx * (dtx * rz * rz + 2.0 * tx * rz * drz)],
                                 [0.0, fy * drz, -fy * (dty * rz * rz + 2.0 * ty * rz * drz)]])
-                JS = J @ Sc
                 dcov = dJ @ JS.transpose() + J @ dSc @ J.transpose() + JS @ dJ.transpose()
                 dQ = -(Q @ dcov @ Q)
                 dpacked[b, i, DX * NXI + k] = fx * (dp[0] * rz + p[0] * drz)

@@ -38,6 +38,7 @@ def window_weights() -> list[float]:
 
 
 _W = window_weights()
+_WW = [[wi * wj for wj in _W] for wi in _W]  # 2D window (products in double, stored as f32 in the kernel)
 
 
 @functools.cache
@@ -48,16 +49,17 @@ def query_stats_kernel():
     def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), out: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = q.shape[0]
         W = q.shape[1]
+        ww = ti.Matrix(_WW, ti.f32)
         for y, x in ti.ndrange(H, W):
             for c in ti.static(range(3)):
                 m = 0.0
                 m2 = 0.0
-                for i in ti.static(range(2 * RADIUS + 1)):
+                for i in range(2 * RADIUS + 1):  # a run-time loop: a kernel 11x smaller to load, same sums
                     yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
                     for j in ti.static(range(2 * RADIUS + 1)):
                         xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
                         v = q[yy, xx, c]
-                        w = ti.static(_W[i] * _W[j])
+                        w = ww[i, j]
                         m += w * v
                         m2 += w * v * v
                 out[y, x, c, 0] = m

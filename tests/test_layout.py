@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # lower number = lower layer; a module may import only its own layer or lower ones at module level
 LAYERS = {
     "kernels": 0,
-    "pose": 1, "camera": 1, "fileio": 1, "scene": 1, "image": 1, "backend": 1,
+    "pose": 1, "camera": 1, "fileio": 1, "scene": 1, "image": 1, "backend": 1, "kernel_load": 1,
     "costs": 2, "render": 2,
     "adapters": 3, "working_set": 3, "lod": 3,
     "refine": 4, "evaluate": 4, "noise": 4, "viz": 4,

@@ -9,8 +9,11 @@ finds the compiled kernel in its offline cache), the second runs on loaded kerne
 difference. One untimed process first fills the offline cache, so every timed row sees a warm disk cache, as
 every run after a user's first does.
 Settings: ``memo off`` (``HGSLOC_TAICHI_MEMO=0``: Taichi's source-position formatting not memoised, the state
-before ``hgsloc_plugin/kernel_load.py``) and ``default``; both run the same kernels. Rows alternate between the
-settings so that the machine's load falls on both alike.
+before ``hgsloc_plugin/kernel_load.py``) and ``default``; both run the same kernels. ``--before DIR`` adds a
+setting that imports the package from another checkout (e.g. ``git worktree add DIR <commit>``, with
+``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to the checkout's top-level folders as the
+editable install maps them): the code before a change, measured in the same run. Rows alternate between the
+settings so that the machine's load falls on all alike.
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ def child() -> dict:
 
 def run(setting: str) -> dict:
     env = dict(os.environ, **SETTINGS[setting])
+    if "PYTHONPATH" in SETTINGS[setting]:
+        env["PYTHONPATH"] = SETTINGS[setting]["PYTHONPATH"] + os.pathsep + os.environ.get("PYTHONPATH", "")
     p = subprocess.run([sys.executable, __file__, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({setting}):\n{p.stderr[-3000:]}")
@@ -68,11 +73,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=2, help="processes per setting")
     ap.add_argument("--out", type=Path, help="also write the Markdown table here")
+    ap.add_argument("--before", type=Path, help="another checkout to measure as the reference (see above)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child()))
         return
+    if args.before:
+        if not (args.before / "hgsloc_plugin" / "kernels").exists():
+            raise SystemExit(f"{args.before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
+        SETTINGS[f"before ({args.before.name})"] = {"PYTHONPATH": str(args.before.resolve())}
     run("default")  # untimed: fills the offline cache
     rows = []
     for k in range(args.runs):
@@ -89,11 +99,19 @@ def main() -> None:
         lines.append(f"| {setting} | {k} | {r['import']:.2f} | {r['init']:.2f} | {r['first render']:.2f} | "
                      f"{r['first refine']:.2f} | {r['again']:.2f} | {r['first refine'] - r['again']:.2f} | "
                      f"{r['total']:.2f} | {'yes' if r['same pose'] else 'NO'} |")
-    load = {s: [r["first refine"] - r["again"] for t, _, r in rows if t == s] for s in SETTINGS}
-    ref = sum(load["memo off"]) / len(load["memo off"])
-    new = sum(load["default"]) / len(load["default"])
-    lines += ["", f"Kernel loading in the first query (mean): memo off {ref:.2f} s, default {new:.2f} s "
-              f"({ref / max(new, 1e-9):.1f}x less)."]
+    mean = {s: {k: sum(r[k] for t, _, r in rows if t == s) / args.runs for k in ("first render", "total")}
+            | {"loading": sum(r["first refine"] - r["again"] for t, _, r in rows if t == s) / args.runs}
+            for s in SETTINGS}
+    new = mean["default"]
+    lines.append("")
+    for s in SETTINGS:
+        if s != "default":
+            ref = mean[s]
+            lines.append(f"Means, {s} -> default: kernel loading in the first query {ref['loading']:.2f} -> "
+                         f"{new['loading']:.2f} s ({ref['loading'] / max(new['loading'], 1e-9):.1f}x less), "
+                         f"first render "
+                         f"{ref['first render']:.2f} -> {new['first render']:.2f} s, process {ref['total']:.2f} -> "
+                         f"{new['total']:.2f} s.")
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

@@ -170,3 +170,39 @@ def test_camera_scaling_and_colmap_models():
     assert Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01], allow_distortion=True).fx == 500
     with pytest.raises(ValueError):
         Camera(0, 10, 1.0, 1.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("src,dst", [((756, 1008), (240, 320)), ((240, 320), (75, 100)), ((240, 320), (150, 200)),
+                                     ((148, 198), (74, 99)), ((37, 53), (80, 111)), ((480, 640), (479, 641))])
+def test_resize_matches_torch_antialiased_bilinear(src, dst):
+    """The query pyramid's resize against torch's ``interpolate(bilinear, antialias=True)`` (the reference)."""
+    import torch
+    import torch.nn.functional as F
+
+    from hgsloc_plugin.image import resize_image
+
+    img = np.random.default_rng(sum(src)).random(src + (3,)).astype(np.float32)
+    out = resize_image(img, dst[1], dst[0])
+    t = F.interpolate(torch.from_numpy(img).permute(2, 0, 1)[None], size=dst, mode="bilinear", antialias=True,
+                      align_corners=False)
+    ref = t[0].permute(1, 2, 0).numpy().clip(0, 1)
+    assert out.shape == dst + (3,) and out.dtype == np.float32
+    assert np.abs(out - ref).max() < 1e-4
+    assert np.array_equal(out, resize_image(img, dst[1], dst[0]))  # deterministic
+
+
+def test_package_and_query_loading_do_not_import_torch(tmp_path):
+    """``import hgsloc_plugin``, loading and resizing a query leave torch unimported (2.5 s per process)."""
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "q.png")
+    code = ("import sys, hgsloc_plugin as hp\n"
+            "from hgsloc_plugin.image import load_image, resize_image\n"
+            f"a = resize_image(load_image({str(tmp_path / 'q.png')!r}), 20, 15)\n"
+            "print(a.shape, 'torch' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["(15,", "20,", "3)", "False"]

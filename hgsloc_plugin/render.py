@@ -79,21 +79,36 @@ def as_pose_list(poses) -> tuple[list[Pose], bool]:
 class _Workspace:
     batch: int
     bufs: dict
-    gaussians: int = 0  # columns of the per-Gaussian buffers (>= the renderer's n)
+    gaussians: int = 0  # columns of the per-Gaussian buffers (>= the renderer's n; 0 for a per-size workspace)
 
 
-# per-Gaussian buffers of a workspace ([B, N, ...]); the others depend on the batch and image size only
-_PER_GAUSSIAN = ("depth", "rect", "ntiles", "packed", "keys_a", "keys_b", "ids_a", "ids_b", "rects", "dpacked")
+def _projection_records(B: int, n: int) -> dict:
+    """Per-Gaussian buffers of the projection and the tile sort for B poses of n Gaussians ([B, n, ...])."""
+    nd = ti.ndarray
+    return dict(depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
+                packed=nd(ti.f32, (B, n, Rec.SIZE)), keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)),
+                ids_a=nd(ti.i32, (B, n)), ids_b=nd(ti.i32, (B, n)), rects=nd(ti.i32, (4, B, n)))
+
+
+def _derivative_records(B: int, n: int) -> dict:
+    """Per-Gaussian derivative records for B poses of n Gaussians: dpacked [B, n, NDER]."""
+    return {"dpacked": ti.ndarray(ti.f32, (B, n, NDER))}
 
 
 @dataclass
 class _Pool:
     """Device workspaces shared by a renderer and every working set taken from it (``Renderer.subset``): a
     query's working set (a different size per query, re-selected as the search moves) reuses the buffers of
-    the last one instead of allocating and zero-filling its own (at 1M Gaussians about 0.7 s per query)."""
+    the last one instead of allocating and zero-filling its own (at 1M Gaussians about 0.7 s per query).
+
+    The per-Gaussian buffers (``records``: projection and sort, ``derivative_records``) are one set for every
+    image size, since calls run one at a time; the per-size workspaces (``ws``, ``gws``) hold the image- and
+    tile-sized buffers and a reference to that set."""
 
     ws: dict = field(default_factory=dict)  # (width, height) -> _Workspace
     gws: dict = field(default_factory=dict)  # derivative workspaces, same keys
+    records: _Workspace | None = None
+    derivative_records: _Workspace | None = None
     isect: ti.Ndarray | None = None
     isect_cap: int = 0
 
@@ -145,13 +160,25 @@ class Renderer:
     def _init_state(self) -> None:
         self._pool = _Pool()
 
-    def _fits(self, ws: _Workspace | None, batch: int) -> bool:
-        return ws is not None and ws.batch >= batch and ws.gaussians >= self.n
-
-    def _columns(self, ws: _Workspace | None) -> int:
-        """Per-Gaussian columns for a new workspace: this renderer's n, or 1.25x the old size when a working set
-        outgrows it (so that a few larger working sets do not re-allocate each time)."""
-        return self.n if ws is None else max(self.n, int(1.25 * ws.gaussians))
+    def _shared(self, attr: str, batch: int, make) -> dict:
+        """The pool's per-Gaussian buffers ``attr`` (``records`` or ``derivative_records``, made by ``make(B, n)``)
+        for ``batch`` poses of this renderer's Gaussians. One set serves every image size: per size, the 1M
+        room's gradient route (three sizes) held three copies of ~340 MB. It grows when a call needs more poses
+        or Gaussians (columns: 1.25x the old when a working set outgrows it, so that a few larger ones do not
+        re-allocate each time), and the workspaces that referenced the old set get the new one."""
+        pool = self._pool
+        cur = getattr(pool, attr)
+        if cur is not None and cur.batch >= batch and cur.gaussians >= self.n:
+            return cur.bufs
+        n = self.n
+        if cur is not None:
+            n = cur.gaussians if cur.gaussians >= self.n else max(self.n, int(1.25 * cur.gaussians))
+            batch = max(batch, cur.batch)
+        new = _Workspace(batch, make(batch, n), n)
+        setattr(pool, attr, new)
+        for ws in (*pool.ws.values(), *pool.gws.values()):  # no workspace keeps the old set alive
+            ws.bufs.update({k: v for k, v in new.bufs.items() if k in ws.bufs})
+        return new.bufs
 
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_t: float, max_r_deg: float) -> Renderer:
         """A renderer of the Gaussians that some pose of a region can see (``kernels/cull.py``).
@@ -237,34 +264,28 @@ class Renderer:
 
     def _workspace(self, camera: Camera, batch: int) -> _Workspace:
         """The buffers for up to ``batch`` poses at ``camera``'s size: one workspace per image size, reused by
-        every call that fits (kernels take the pose count as an argument), grown when a call needs more. A
-        search's batches vary from 1 to 13 poses; re-allocating per size cost 35-70 ms at 50k Gaussians and
-        about 1 s at 1M (allocation zero-fills), more than the renders of an expansion."""
+        every call that fits (kernels take the pose count as an argument), grown when a call needs more, with the
+        pool's per-Gaussian buffers (:meth:`_shared`). A search's batches vary from 1 to 13 poses; re-allocating
+        per size cost 35-70 ms at 50k Gaussians and about 1 s at 1M (allocation zero-fills), more than the
+        renders of an expansion."""
         key = (camera.width, camera.height)
-        old = self._pool.ws.get(key)
-        if self._fits(old, batch):
-            return old
-        n, ts = self._columns(old), self.config.tile_size
-        B = max(batch, min(self.chunk, self.MIN_WORKSPACE), old.batch if old is not None else 0)
-        tx, ty = -(-camera.width // ts), -(-camera.height // ts)
-        if max(tx, ty) >= 1 << 15:  # the sort packs tile ranges in 16 bits
-            raise ValueError(f"image {camera.width}x{camera.height} has too many tiles per axis")
-        nd = ti.ndarray
-        bufs = dict(
-            viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)), extent=nd(ti.f32, (2,)),
-            depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
-            packed=nd(ti.f32, (B, n, Rec.SIZE)),
-            totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
-            keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)), ids_a=nd(ti.i32, (B, n)),
-            ids_b=nd(ti.i32, (B, n)), rects=nd(ti.i32, (4, B, n)), hist=nd(ti.i32, (B, RADIX)),
-            cursor=nd(ti.i32, (B, tx * ty)),
-            tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)),
-            tiles=(tx, ty),
-        )
-        if old is not None and old.batch == B:  # same batch: keep the image-sized buffers made on demand
-            bufs = {**old.bufs, **{k: bufs[k] for k in _PER_GAUSSIAN if k in bufs}}
-        ws = _Workspace(B, bufs, n)
-        self._pool.ws[key] = ws
+        ws = self._pool.ws.get(key)
+        if ws is None or ws.batch < batch:
+            ts = self.config.tile_size
+            B = max(batch, min(self.chunk, self.MIN_WORKSPACE), ws.batch if ws is not None else 0)
+            tx, ty = -(-camera.width // ts), -(-camera.height // ts)
+            if max(tx, ty) >= 1 << 15:  # the sort packs tile ranges in 16 bits
+                raise ValueError(f"image {camera.width}x{camera.height} has too many tiles per axis")
+            nd = ti.ndarray
+            bufs = dict(
+                viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
+                extent=nd(ti.f32, (2,)), totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
+                hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)),
+                tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)), tiles=(tx, ty),
+            )
+            ws = _Workspace(B, bufs)
+            self._pool.ws[key] = ws
+        ws.bufs.update(self._shared("records", ws.batch, _projection_records))
         return ws
 
     def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background) -> None:
@@ -437,21 +458,17 @@ class Renderer:
         return max(1, min(4, 4_000_000 // self.n))
 
     def _grad_workspace(self, camera: Camera, batch: int) -> _Workspace:
+        """The derivative pass's image-sized buffers at ``camera``'s size, with the pool's derivative records."""
         key = (camera.width, camera.height)
-        old = self._pool.gws.get(key)
-        if self._fits(old, batch):
-            return old
-        H, W, n = camera.height, camera.width, self._columns(old)
-        batch = max(batch, old.batch if old is not None else 0)
-        nd = ti.ndarray
-        dpacked = nd(ti.f32, (batch, n, NDER))
-        if old is not None and old.batch == batch:  # keep the image-sized buffers
-            bufs = {**old.bufs, "dpacked": dpacked}
-        else:
-            bufs = dict(dpacked=dpacked, rgb=nd(ti.f32, (batch, H, W, 3)), alpha=nd(ti.f32, (batch, H, W)),
-                        drgb=nd(ti.f32, (batch, H, W, 3 * NXI)))
-        ws = _Workspace(batch, bufs, n)
-        self._pool.gws[key] = ws
+        ws = self._pool.gws.get(key)
+        if ws is None or ws.batch < batch:
+            H, W = camera.height, camera.width
+            batch = max(batch, ws.batch if ws is not None else 0)
+            nd = ti.ndarray
+            ws = _Workspace(batch, dict(rgb=nd(ti.f32, (batch, H, W, 3)), alpha=nd(ti.f32, (batch, H, W)),
+                                        drgb=nd(ti.f32, (batch, H, W, 3 * NXI))))
+            self._pool.gws[key] = ws
+        ws.bufs.update(self._shared("derivative_records", ws.batch, _derivative_records))
         return ws
 
     def _derivative_images(self, camera: Camera, part: list[Pose], background) -> dict:

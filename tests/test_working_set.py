@@ -8,6 +8,7 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.demo.queries import degrade, query_poses
 from hgsloc_plugin.demo.scene import densify, make_room_scene
+from hgsloc_plugin.image import resize_image
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.scorer import Scorer
 from hgsloc_plugin.render import get_renderer
@@ -172,3 +173,35 @@ def test_subset_rejects_bad_indices():
     for idx in ([], [3, 2], [0, 50], [-1, 2]):
         with pytest.raises(ValueError, match="increasing"):
             r.subset(np.array(idx, np.int64))
+
+
+def test_image_sizes_share_one_set_of_per_gaussian_buffers():
+    """Every image size's workspace (and every derivative workspace) uses the pool's one set of per-Gaussian
+    buffers, grown in place of the old one when a call needs more poses; costs and derivatives equal those of
+    renderers that each allocate their own, whatever the order of sizes and batch sizes."""
+    from hgsloc_plugin.render import Renderer
+
+    scene = make_room_scene()
+    cams = [hp.Camera.from_fov(320, 240, 65.0).with_max_side(s) for s in (64, 96, 128)]
+    gt = query_poses(1, seed=5)[0]
+    rng = np.random.default_rng(2)
+    poses = [gt] + [se3_noise(gt, 0.02, 0.01, rng) for _ in range(17)]
+    img = hp.render(scene, cams[-1], poses[3])
+    shared = Renderer(scene)
+    plan = [(0, 3), (1, 1), (2, 5), (0, 16), (2, 2), (1, 18), (0, 1)]  # (size, poses): the batch grows twice
+    for i, b in plan:
+        cam = cams[i]
+        q = shared.upload_window_query(resize_image(img, cam.width, cam.height))
+        got = shared.window_cost(cam, poses[:b], q)
+        c, g, H = shared.pose_gradient(cam, poses[:2], q)
+        own = Renderer(scene)  # its own workspaces, exactly this call's
+        np.testing.assert_array_equal(got, own.window_cost(cam, poses[:b], q))
+        for x, y in zip((c, g, H), own.pose_gradient(cam, poses[:2], q)):
+            np.testing.assert_array_equal(x, y)
+    pool = shared._pool
+    assert len(pool.ws) == 3 and len(pool.gws) == 3
+    assert pool.records.batch >= 18
+    for ws in pool.ws.values():
+        assert all(ws.bufs[k] is v for k, v in pool.records.bufs.items())
+    for ws in pool.gws.values():
+        assert ws.bufs["dpacked"] is pool.derivative_records.bufs["dpacked"]

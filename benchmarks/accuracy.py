@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT))
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.fileio import atomic_write_bytes  # noqa: E402
 from hgsloc_plugin.noise import apply_protocol  # noqa: E402
 
 HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
@@ -106,9 +107,7 @@ def main() -> None:
             "translation in "
             "scene units x 100 (cm for the room), rotation in degrees. "
             f"Total time {time.time() - t_start:.0f} s.\n\n" + "\n".join(lines) + "\n")
-    tmp = Path(a.out + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(a.out)
+    atomic_write_bytes(Path(a.out), text.encode())
     print(f"wrote {a.out}")
 
 

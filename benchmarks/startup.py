@@ -115,9 +115,9 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.out)
+        from hgsloc_plugin.fileio import atomic_write_bytes
+
+        atomic_write_bytes(args.out, text.encode())
 
 
 if __name__ == "__main__":

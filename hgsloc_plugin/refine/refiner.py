@@ -255,20 +255,20 @@ class Refiner:
         rule on its pose; sets the verdict fields of ``result`` (a later route overwrites them)."""
         cfg = self.config
         name = result.name
-        scorer.set_query(plan.cam_final, img, renderer=renderer)
-        result.cost_initial = float(scorer([coarse_pose])[0])
+        # the rule judges where the candidate is a minimum: at the polish's size when it runs (a pose polished at
+        # the query's own pixels is not the minimum of the 200 px cost, whose one-pixel moves may then descend)
+        judge_cam = plan.cam_polish if cfg.polishes else plan.cam_final
+        if search or judge_cam == plan.cam_final:  # the coarse cost at the scoring size: the search's start
+            scorer.set_query(plan.cam_final, img, renderer=renderer)
+            result.cost_initial = float(scorer([coarse_pose])[0])
         if search:
             best_pose, best_cost, after_coarse = self._search_levels(plan, scorer, img, coarse_pose, result)
         else:
             best_pose, best_cost, after_coarse = coarse_pose, result.cost_initial, coarse_pose
-        judge_cam = plan.cam_final
         if cfg.polishes:
             best_pose = self._polish(plan, renderer, img, best_pose, coarse_pose, result, search)
-            # the rule judges where the candidate is a minimum: at the polish's size (a pose polished at the
-            # query's own pixels is not the minimum of the 200 px cost, whose one-pixel moves may then descend)
-            judge_cam = plan.cam_polish
             if judge_cam != plan.cam_final:
-                scorer.set_query(judge_cam, img)
+                scorer.set_query(judge_cam, img, renderer=renderer)
                 result.cost_initial = float(scorer([coarse_pose])[0])
             best_cost = float(scorer([best_pose])[0])
         result.search_pose, result.search_cost = best_pose, best_cost

@@ -17,6 +17,7 @@ import functools
 import taichi as ti
 
 from .config import RasterConfig
+from .grain import item, spread
 from .layout import Rec, Stat
 
 NSTAT = Stat.SIZE
@@ -176,7 +177,8 @@ def _make_splat_tile(config: RasterConfig):
     Per pixel the same Gaussians are blended in the same order and with the same arithmetic as ``shade``
     (a pixel outside a Gaussian's ellipse has alpha < alpha_min there, so skipping it changes nothing), so
     the result equals the per-pixel kernel's; the work is proportional to the footprints instead of tile
-    area x list length. Returns the accumulator array [tile * tile, 5] (row-major within the tile).
+    area x list length. Returns the accumulator array [tile * tile, 5] (row-major within the tile) and the tile's
+    first pixel (x0, y0).
     """
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
     npx = tile * tile
@@ -253,7 +255,7 @@ def _make_splat_tile(config: RasterConfig):
                                 buf[p, 3] += vis * cbl
                                 buf[p, 4] += vis * dz
                                 buf[p, 0] = next_T
-        return buf
+        return buf, x0, y0
 
     return splat_tile
 
@@ -280,18 +282,20 @@ def splat_image_kernel(config: RasterConfig):
     ):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
-        for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            buf = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
-            x0 = (t % tiles_x) * tile
-            y0 = (t // tiles_x) * tile
-            for py in range(y0, ti.min(y0 + tile, H)):
-                for px in range(x0, ti.min(x0 + tile, W)):
-                    p = (py - y0) * tile + (px - x0)
-                    T = ti.abs(buf[p, 0])
-                    for c in ti.static(range(3)):
-                        out_rgb[b, py, px, c] = buf[p, 1 + c] + T * background[c]
-                    out_alpha[b, py, px] = 1.0 - T
-                    out_depth[b, py, px] = buf[p, 4]
+        stride = ti.static(spread())  # one task per tile on the CPU (grain.py)
+        nt = tiles_x * tiles_y
+        for task in range(num_poses * nt * stride):
+            is_item, b, t = item(task, stride, nt)
+            if is_item:
+                buf, x0, y0 = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
+                for py in range(y0, ti.min(y0 + tile, H)):
+                    for px in range(x0, ti.min(x0 + tile, W)):
+                        p = (py - y0) * tile + (px - x0)
+                        T = ti.abs(buf[p, 0])
+                        for c in ti.static(range(3)):
+                            out_rgb[b, py, px, c] = buf[p, 1 + c] + T * background[c]
+                        out_alpha[b, py, px] = 1.0 - T
+                        out_depth[b, py, px] = buf[p, 4]
 
     return splat_image
 
@@ -318,20 +322,22 @@ def splat_cost_kernel(config: RasterConfig):
     ):
         H = target.shape[0]
         W = target.shape[1]
-        for b, t in ti.ndrange(num_poses, tiles_x * tiles_y):
-            buf = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
-            x0 = (t % tiles_x) * tile
-            y0 = (t // tiles_x) * tile
-            st = ti.Vector([0.0] * NSTAT)
-            bg = ti.Vector([background[0], background[1], background[2]])
-            for py in range(y0, ti.min(y0 + tile, H)):
-                for px in range(x0, ti.min(x0 + tile, W)):
-                    p = (py - y0) * tile + (px - x0)
-                    T = ti.abs(buf[p, 0])
-                    if 1.0 - T >= mask_alpha:
-                        rgb = ti.Vector([buf[p, 1], buf[p, 2], buf[p, 3]])
-                        accumulate_stats(st, rgb + T * bg, target, py, px)
-            for s in ti.static(range(NSTAT)):
-                run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]
+        stride = ti.static(spread())  # one task per tile on the CPU (grain.py)
+        nt = tiles_x * tiles_y
+        for task in range(num_poses * nt * stride):
+            is_item, b, t = item(task, stride, nt)
+            if is_item:
+                buf, x0, y0 = splat_tile(b, t, tiles_x, W, H, packed, tile_start, isect, isect_base)
+                st = ti.Vector([0.0] * NSTAT)
+                bg = ti.Vector([background[0], background[1], background[2]])
+                for py in range(y0, ti.min(y0 + tile, H)):
+                    for px in range(x0, ti.min(x0 + tile, W)):
+                        p = (py - y0) * tile + (px - x0)
+                        T = ti.abs(buf[p, 0])
+                        if 1.0 - T >= mask_alpha:
+                            rgb = ti.Vector([buf[p, 1], buf[p, 2], buf[p, 3]])
+                            accumulate_stats(st, rgb + T * bg, target, py, px)
+                for s in ti.static(range(NSTAT)):
+                    run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]
 
     return splat_cost

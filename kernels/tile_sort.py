@@ -15,6 +15,7 @@ import functools
 import taichi as ti
 
 from .config import RasterConfig
+from .grain import item, spread
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
 RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
@@ -30,11 +31,14 @@ def count_kernel():
     def count(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32, num_gaussians: ti.i32,
               totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
         n = num_gaussians
-        for b in range(num_poses):
-            s = ti.i64(0)
-            for i in range(n):
-                s += ntiles[b, i]
-            totals[b] = s
+        stride = ti.static(spread())  # one task per pose on the CPU (grain.py)
+        for task in range(num_poses * stride):
+            is_item, b, _ = item(task, stride, 1)
+            if is_item:
+                s = ti.i64(0)
+                for i in range(n):
+                    s += ntiles[b, i]
+                totals[b] = s
 
     return count
 
@@ -73,68 +77,71 @@ def tile_sort_kernel(config: RasterConfig):
     ):
         n = num_gaussians
         num_tiles = tiles_x * tiles_y
-        for b in range(num_poses):
-            m = 0
-            for i in range(n):
-                if ntiles[b, i] > 0:
-                    ids_a[b, m] = i
-                    keys_a[b, m] = ti.bit_cast(depth[b, i], ti.u32)
-                    rects[0, b, m] = rect[b, i, 0] | (rect[b, i, 2] << 16)
-                    rects[1, b, m] = rect[b, i, 1] | (rect[b, i, 3] << 16)
-                    m += 1
-            # stable LSD radix sort, 3 passes of 11, 11 and 10 bits (one pass over the keys fewer than 4 x 8; the
-            # 2048-bucket histogram still fits the L1 cache): a -> b -> a -> b, the sorted run ends in b
-            for p in ti.static(range(3)):
-                shift = ti.static(RADIX_BITS * p)
-                src_k = ti.static(keys_a if p % 2 == 0 else keys_b)
-                dst_k = ti.static(keys_b if p % 2 == 0 else keys_a)
-                src_i = ti.static(ids_a if p % 2 == 0 else ids_b)
-                dst_i = ti.static(ids_b if p % 2 == 0 else ids_a)
-                src_r = ti.static(0 if p % 2 == 0 else 2)
-                dst_r = ti.static(2 if p % 2 == 0 else 0)
-                for k in range(RADIX):
-                    hist[b, k] = 0
+        stride = ti.static(spread())  # one task per pose on the CPU (grain.py)
+        for task in range(num_poses * stride):
+            is_item, b, _ = item(task, stride, 1)
+            if is_item:
+                m = 0
+                for i in range(n):
+                    if ntiles[b, i] > 0:
+                        ids_a[b, m] = i
+                        keys_a[b, m] = ti.bit_cast(depth[b, i], ti.u32)
+                        rects[0, b, m] = rect[b, i, 0] | (rect[b, i, 2] << 16)
+                        rects[1, b, m] = rect[b, i, 1] | (rect[b, i, 3] << 16)
+                        m += 1
+                # stable LSD radix sort, 3 passes of 11, 11 and 10 bits (one pass over the keys fewer than 4 x 8; the
+                # 2048-bucket histogram still fits the L1 cache): a -> b -> a -> b, the sorted run ends in b
+                for p in ti.static(range(3)):
+                    shift = ti.static(RADIX_BITS * p)
+                    src_k = ti.static(keys_a if p % 2 == 0 else keys_b)
+                    dst_k = ti.static(keys_b if p % 2 == 0 else keys_a)
+                    src_i = ti.static(ids_a if p % 2 == 0 else ids_b)
+                    dst_i = ti.static(ids_b if p % 2 == 0 else ids_a)
+                    src_r = ti.static(0 if p % 2 == 0 else 2)
+                    dst_r = ti.static(2 if p % 2 == 0 else 0)
+                    for k in range(RADIX):
+                        hist[b, k] = 0
+                    for j in range(m):
+                        hist[b, ti.cast((src_k[b, j] >> shift) & RADIX_MASK, ti.i32)] += 1
+                    acc = 0
+                    for k in range(RADIX):
+                        c = hist[b, k]
+                        hist[b, k] = acc
+                        acc += c
+                    for j in range(m):
+                        key = src_k[b, j]
+                        digit = ti.cast((key >> shift) & RADIX_MASK, ti.i32)
+                        pos = hist[b, digit]
+                        hist[b, digit] = pos + 1
+                        dst_k[b, pos] = key
+                        dst_i[b, pos] = src_i[b, j]
+                        rects[dst_r, b, pos] = rects[src_r, b, j]
+                        rects[dst_r + 1, b, pos] = rects[src_r + 1, b, j]
+                # stable counting sort by tile id, visiting Gaussians in depth order
+                for t in range(num_tiles):
+                    cursor[b, t] = 0
                 for j in range(m):
-                    hist[b, ti.cast((src_k[b, j] >> shift) & RADIX_MASK, ti.i32)] += 1
-                acc = 0
-                for k in range(RADIX):
-                    c = hist[b, k]
-                    hist[b, k] = acc
-                    acc += c
+                    rx = rects[2, b, j]
+                    ry = rects[3, b, j]
+                    for ty in range(ry & 0xFFFF, ry >> 16):
+                        for tx in range(rx & 0xFFFF, rx >> 16):
+                            cursor[b, ty * tiles_x + tx] += 1
+                acc2 = 0
+                for t in range(num_tiles):
+                    c = cursor[b, t]
+                    tile_start[b, t] = acc2
+                    cursor[b, t] = acc2
+                    acc2 += c
+                tile_start[b, num_tiles] = acc2
+                base = ti.cast(isect_base[b], ti.i32)
                 for j in range(m):
-                    key = src_k[b, j]
-                    digit = ti.cast((key >> shift) & RADIX_MASK, ti.i32)
-                    pos = hist[b, digit]
-                    hist[b, digit] = pos + 1
-                    dst_k[b, pos] = key
-                    dst_i[b, pos] = src_i[b, j]
-                    rects[dst_r, b, pos] = rects[src_r, b, j]
-                    rects[dst_r + 1, b, pos] = rects[src_r + 1, b, j]
-            # stable counting sort by tile id, visiting Gaussians in depth order
-            for t in range(num_tiles):
-                cursor[b, t] = 0
-            for j in range(m):
-                rx = rects[2, b, j]
-                ry = rects[3, b, j]
-                for ty in range(ry & 0xFFFF, ry >> 16):
-                    for tx in range(rx & 0xFFFF, rx >> 16):
-                        cursor[b, ty * tiles_x + tx] += 1
-            acc2 = 0
-            for t in range(num_tiles):
-                c = cursor[b, t]
-                tile_start[b, t] = acc2
-                cursor[b, t] = acc2
-                acc2 += c
-            tile_start[b, num_tiles] = acc2
-            base = ti.cast(isect_base[b], ti.i32)
-            for j in range(m):
-                g = ids_b[b, j]
-                rx = rects[2, b, j]
-                ry = rects[3, b, j]
-                for ty in range(ry & 0xFFFF, ry >> 16):
-                    for tx in range(rx & 0xFFFF, rx >> 16):
-                        t = ty * tiles_x + tx
-                        isect[base + cursor[b, t]] = g
-                        cursor[b, t] += 1
+                    g = ids_b[b, j]
+                    rx = rects[2, b, j]
+                    ry = rects[3, b, j]
+                    for ty in range(ry & 0xFFFF, ry >> 16):
+                        for tx in range(rx & 0xFFFF, rx >> 16):
+                            t = ty * tiles_x + tx
+                            isect[base + cursor[b, t]] = g
+                            cursor[b, t] += 1
 
     return tile_sort

@@ -23,6 +23,8 @@ import math
 
 import taichi as ti
 
+from .grain import item, spread
+
 SIGMA = 1.5
 RADIUS = 5
 C1 = 0.01 ** 2
@@ -135,20 +137,23 @@ def vertical_cost_kernel(with_luminance: bool):
                  rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
-        for b, y in ti.ndrange(num_poses, H):
-            tot = 0.0
-            cnt = 0.0
-            for x in range(W):
-                if alpha[b, y, x] >= mask_alpha:
-                    v = 0.0
-                    for c in ti.static(range(3)):
-                        cs, _, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
-                        if ti.static(with_luminance):
-                            cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
-                        v += cs
-                    tot += v / 3.0
-                    cnt += 1.0
-            rows[b, y, 0, 0] = tot
-            rows[b, y, 0, 1] = cnt
+        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
+        for task in range(num_poses * H * stride):
+            is_item, b, y = item(task, stride, H)
+            if is_item:
+                tot = 0.0
+                cnt = 0.0
+                for x in range(W):
+                    if alpha[b, y, x] >= mask_alpha:
+                        v = 0.0
+                        for c in ti.static(range(3)):
+                            cs, _, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
+                            if ti.static(with_luminance):
+                                cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
+                            v += cs
+                        tot += v / 3.0
+                        cnt += 1.0
+                rows[b, y, 0, 0] = tot
+                rows[b, y, 0, 1] = cnt
 
     return vertical

@@ -24,6 +24,7 @@ import functools
 
 import taichi as ti
 
+from .grain import item, spread
 from .pose_grad import NXI
 from .window import RADIUS, contrast_structure, window_weights
 
@@ -49,29 +50,32 @@ def cs_terms_kernel():
                  rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
-        for b, y in ti.ndrange(num_poses, H):
-            tot = 0.0
-            cnt = 0.0
-            for x in range(W):
-                valid = alpha[b, y, x] >= mask_alpha
-                v = 0.0
-                for c in ti.static(range(3)):
-                    cs, den, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
-                    v += cs
-                    a = 0.0
-                    bw = 0.0
+        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
+        for task in range(num_poses * H * stride):
+            is_item, b, y = item(task, stride, H)
+            if is_item:
+                tot = 0.0
+                cnt = 0.0
+                for x in range(W):
+                    valid = alpha[b, y, x] >= mask_alpha
+                    v = 0.0
+                    for c in ti.static(range(3)):
+                        cs, den, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
+                        v += cs
+                        a = 0.0
+                        bw = 0.0
+                        if valid:
+                            a = 1.0 / den
+                            bw = (1.0 - cs) / den
+                        weights[b, y, x, 2 * c] = a
+                        weights[b, y, x, 2 * c + 1] = bw
+                        means[b, y, x, 2 * c] = m
+                        means[b, y, x, 2 * c + 1] = m - mq
                     if valid:
-                        a = 1.0 / den
-                        bw = (1.0 - cs) / den
-                    weights[b, y, x, 2 * c] = a
-                    weights[b, y, x, 2 * c + 1] = bw
-                    means[b, y, x, 2 * c] = m
-                    means[b, y, x, 2 * c + 1] = m - mq
-                if valid:
-                    tot += v / 3.0
-                    cnt += 1.0
-            rows[b, y, 0, 0] = tot
-            rows[b, y, 0, 1] = cnt
+                        tot += v / 3.0
+                        cnt += 1.0
+                rows[b, y, 0, 0] = tot
+                rows[b, y, 0, 1] = cnt
 
     return cs_terms
 
@@ -145,25 +149,28 @@ def system_kernel():
                rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = rgb.shape[1]
         W = rgb.shape[2]
-        for b, y in ti.ndrange(num_poses, H):
-            acc = ti.Vector([0.0] * NSYS)
-            for x in range(W):
-                for c in ti.static(range(3)):
-                    Jk = ti.Vector([drgb[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
-                    Jb = ti.Vector([jbar[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
-                    ah = what[b, y, x, 2 * c]
-                    bh = what[b, y, x, 2 * c + 1]
-                    a = weights[b, y, x, 2 * c]
-                    bw = weights[b, y, x, 2 * c + 1]
-                    r = rgb[b, y, x, c]
-                    d = r - qstats[y, x, c, 2]
-                    gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
-                    for i in ti.static(range(NXI)):
-                        for j in ti.static(range(i, NXI)):
-                            idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
-                            acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
-                        acc[NH + i] += gk[i]
-            for s in ti.static(range(NSYS)):
-                rows[b, y, 0, s] = acc[s]
+        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
+        for task in range(num_poses * H * stride):
+            is_item, b, y = item(task, stride, H)
+            if is_item:
+                acc = ti.Vector([0.0] * NSYS)
+                for x in range(W):
+                    for c in ti.static(range(3)):
+                        Jk = ti.Vector([drgb[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                        Jb = ti.Vector([jbar[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                        ah = what[b, y, x, 2 * c]
+                        bh = what[b, y, x, 2 * c + 1]
+                        a = weights[b, y, x, 2 * c]
+                        bw = weights[b, y, x, 2 * c + 1]
+                        r = rgb[b, y, x, c]
+                        d = r - qstats[y, x, c, 2]
+                        gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
+                        for i in ti.static(range(NXI)):
+                            for j in ti.static(range(i, NXI)):
+                                idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
+                                acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
+                            acc[NH + i] += gk[i]
+                for s in ti.static(range(NSYS)):
+                    rows[b, y, 0, s] = acc[s]
 
     return system

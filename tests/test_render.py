@@ -102,12 +102,14 @@ def test_tile_lists_match_reference_binning():
         np.testing.assert_array_equal(got, ids.numpy(), err_msg=f"tile {t}")
 
 
-def test_batch_equals_one_by_one():
+@pytest.mark.parametrize("size", [(64, 48), (200, 150)])  # 60 tiles in all; 650: more than one CPU task's 512
+def test_batch_equals_one_by_one(size):
     scene = random_scene(n=300, sh_degree=1, seed=7)
-    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    w, h = size
+    cam = hp.Camera(w, h, 50.0 * w / 64, 50.0 * w / 64, w / 2, h / 2)
     poses = [hp.Pose.identity().perturbed_in_camera([0.01 * k, 0, -0.02 * k], [0, 0.03 * k, 0]) for k in range(5)]
     batch = hp.render(scene, cam, poses)
-    assert batch.shape == (5, 48, 64, 3)
+    assert batch.shape == (5, h, w, 3)
     for k, T in enumerate(poses):
         np.testing.assert_array_equal(batch[k], hp.render(scene, cam, T))
 

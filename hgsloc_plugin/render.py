@@ -10,6 +10,7 @@ one call go through each kernel stage in one launch (the batch is a leading dime
 
 from __future__ import annotations
 
+import dataclasses
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -105,8 +106,8 @@ class _Pool:
     image size, since calls run one at a time; the per-size workspaces (``ws``, ``gws``) hold the image- and
     tile-sized buffers and a reference to that set."""
 
-    ws: dict = field(default_factory=dict)  # (width, height) -> _Workspace
-    gws: dict = field(default_factory=dict)  # derivative workspaces, same keys
+    ws: dict = field(default_factory=dict)  # (width, height, tile size) -> _Workspace
+    gws: dict = field(default_factory=dict)  # derivative workspaces, (width, height) -> _Workspace
     records: _Workspace | None = None
     derivative_records: _Workspace | None = None
     isect: ti.Ndarray | None = None
@@ -145,6 +146,10 @@ class Renderer:
         self._project = projection_kernel(self.config, self.sh_degree)
         self._count = count_kernel()
         self._sort = tile_sort_kernel(self.config)
+        # the derivative pass bins at its own tile size (RasterConfig.grad_tile_size): shorter per-pixel lists
+        self._grad_config = dataclasses.replace(self.config, tile_size=self.config.grad_tile_size)
+        self._project_grad = projection_kernel(self._grad_config, self.sh_degree)
+        self._sort_grad = tile_sort_kernel(self._grad_config)
         mode = self.config.blend
         if mode == "auto":
             mode = "pixel" if current_arch() == "cuda" else "splat"
@@ -225,7 +230,8 @@ class Renderer:
         kernels and workspaces (the pool: kernels take N as an argument or read it from the Gaussians)."""
         sub = object.__new__(Renderer)
         sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
-            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool")})
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool", "_grad_config",
+            "_project_grad", "_sort_grad")})
         sub.n = n
         sub.source_index = np.asarray(source_index)
         return sub
@@ -262,16 +268,16 @@ class Renderer:
         """Poses per launch."""
         return max(1, self.config.max_batch_elements // self.n)
 
-    def _workspace(self, camera: Camera, batch: int) -> _Workspace:
-        """The buffers for up to ``batch`` poses at ``camera``'s size: one workspace per image size, reused by
-        every call that fits (kernels take the pose count as an argument), grown when a call needs more, with the
-        pool's per-Gaussian buffers (:meth:`_shared`). A search's batches vary from 1 to 13 poses; re-allocating
-        per size cost 35-70 ms at 50k Gaussians and about 1 s at 1M (allocation zero-fills), more than the
-        renders of an expansion."""
-        key = (camera.width, camera.height)
+    def _workspace(self, camera: Camera, batch: int, grad: bool = False) -> _Workspace:
+        """The buffers for up to ``batch`` poses at ``camera``'s size: one workspace per image size (and tiling:
+        ``grad`` for the derivative pass's, ``RasterConfig.grad_tile_size``), reused by every call that fits
+        (kernels take the pose count as an argument), grown when a call needs more, with the pool's per-Gaussian
+        buffers (:meth:`_shared`). A search's batches vary from 1 to 13 poses; re-allocating per size cost 35-70
+        ms at 50k Gaussians and about 1 s at 1M (allocation zero-fills), more than the renders of an expansion."""
+        ts = self._grad_config.tile_size if grad else self.config.tile_size
+        key = (camera.width, camera.height, ts)
         ws = self._pool.ws.get(key)
         if ws is None or ws.batch < batch:
-            ts = self.config.tile_size
             B = max(batch, min(self.chunk, self.MIN_WORKSPACE), ws.batch if ws is not None else 0)
             tx, ty = -(-camera.width // ts), -(-camera.height // ts)
             if max(tx, ty) >= 1 << 15:  # the sort packs tile ranges in 16 bits
@@ -288,8 +294,9 @@ class Renderer:
         ws.bufs.update(self._shared("records", ws.batch, _projection_records))
         return ws
 
-    def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background) -> None:
-        """Projection and tile sort for up to ``ws.batch`` poses."""
+    def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background, grad: bool = False) -> None:
+        """Projection and tile sort for up to ``ws.batch`` poses (``grad``: at the derivative pass's tile size, in
+        a workspace from ``_workspace(..., grad=True)``)."""
         b = ws.bufs
         B = len(poses)
         vm = np.zeros((ws.batch, 3, 4), np.float32)
@@ -304,9 +311,10 @@ class Renderer:
                                          cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
-        self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
-                      b["intrin"], camera.width, camera.height, B, b["extent"], b["depth"], b["rect"], b["ntiles"],
-                      b["packed"])
+        project, sort = (self._project_grad, self._sort_grad) if grad else (self._project, self._sort)
+        project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
+                b["intrin"], camera.width, camera.height, B, b["extent"], b["depth"], b["rect"], b["ntiles"],
+                b["packed"])
         self._count(b["ntiles"], B, self.n, b["totals"])
         totals = b["totals"].to_numpy()[:B]
         base = np.zeros(ws.batch, np.int64)
@@ -319,9 +327,8 @@ class Renderer:
             pool.isect = ti.ndarray(ti.i32, (cap,))
             pool.isect_cap = cap
         b["isect_base"].from_numpy(base)
-        self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"],
-                   b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
-                   pool.isect)
+        sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"], b["keys_b"],
+             b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"], pool.isect)
 
     def _chunks(self, poses: list[Pose], size: int | None = None):
         """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""
@@ -474,8 +481,8 @@ class Renderer:
     def _derivative_images(self, camera: Camera, part: list[Pose], background) -> dict:
         """Geometry, derivative records and derivative blending of up to ``grad_chunk`` poses; the images stay on
         the device (``rgb``, ``alpha``, ``drgb`` of the derivative workspace)."""
-        ws = self._workspace(camera, len(part))
-        self._geometry(camera, part, ws, background)
+        ws = self._workspace(camera, len(part), grad=True)
+        self._geometry(camera, part, ws, background, grad=True)
         b = ws.bufs
         g = self._grad_workspace(camera, min(self.grad_chunk, len(part))).bufs
         n = len(part)
@@ -485,8 +492,8 @@ class Renderer:
         # blend.splat_image does) measured 1.7x slower on the CPU here (248 vs 148 ms at 320x240): the
         # derivative arithmetic, not the rejected pairs, dominates, and registers beat the scratch array
         tx, _ = b["tiles"]
-        blend_grad_kernel(self.config)(b["packed"], g["dpacked"], b["tile_start"], self._pool.isect, b["isect_base"],
-                                       b["background"], tx, n, g["rgb"], g["alpha"], g["drgb"])
+        blend_grad_kernel(self._grad_config)(b["packed"], g["dpacked"], b["tile_start"], self._pool.isect,
+                                             b["isect_base"], b["background"], tx, n, g["rgb"], g["alpha"], g["drgb"])
         return g
 
     def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):

@@ -199,7 +199,10 @@ def test_image_sizes_share_one_set_of_per_gaussian_buffers():
         for x, y in zip((c, g, H), own.pose_gradient(cam, poses[:2], q)):
             np.testing.assert_array_equal(x, y)
     pool = shared._pool
-    assert len(pool.ws) == 3 and len(pool.gws) == 3
+    sizes = {(c.width, c.height) for c in cams}
+    cfg = shared.config  # one geometry workspace per size and tiling (renders; the derivative pass's lists)
+    assert set(pool.ws) == {(w, h, t) for w, h in sizes for t in (cfg.tile_size, cfg.grad_tile_size)}
+    assert set(pool.gws) == sizes
     assert pool.records.batch >= 18
     for ws in pool.ws.values():
         assert all(ws.bufs[k] is v for k, v in pool.records.bufs.items())

@@ -146,10 +146,9 @@ class Renderer:
         self._project = projection_kernel(self.config, self.sh_degree)
         self._count = count_kernel()
         self._sort = tile_sort_kernel(self.config)
-        # the derivative pass bins at its own tile size (RasterConfig.grad_tile_size): shorter per-pixel lists
+        # the derivative pass bins at its own tile size (RasterConfig.grad_tile_size): shorter per-pixel lists;
+        # the projection takes the tile size as an argument and the sort reads the tile counts, so both serve it
         self._grad_config = dataclasses.replace(self.config, tile_size=self.config.grad_tile_size)
-        self._project_grad = projection_kernel(self._grad_config, self.sh_degree)
-        self._sort_grad = tile_sort_kernel(self._grad_config)
         mode = self.config.blend
         if mode == "auto":
             mode = "pixel" if current_arch() == "cuda" else "splat"
@@ -230,8 +229,7 @@ class Renderer:
         kernels and workspaces (the pool: kernels take N as an argument or read it from the Gaussians)."""
         sub = object.__new__(Renderer)
         sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
-            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool", "_grad_config",
-            "_project_grad", "_sort_grad")})
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool", "_grad_config")})
         sub.n = n
         sub.source_index = np.asarray(source_index)
         return sub
@@ -311,10 +309,10 @@ class Renderer:
                                          cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
-        project, sort = (self._project_grad, self._sort_grad) if grad else (self._project, self._sort)
-        project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
-                b["intrin"], camera.width, camera.height, B, b["extent"], b["depth"], b["rect"], b["ntiles"],
-                b["packed"])
+        ts = self._grad_config.tile_size if grad else self.config.tile_size
+        self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
+                      b["intrin"], camera.width, camera.height, ts, B, b["extent"], b["depth"], b["rect"],
+                      b["ntiles"], b["packed"])
         self._count(b["ntiles"], B, self.n, b["totals"])
         totals = b["totals"].to_numpy()[:B]
         base = np.zeros(ws.batch, np.int64)
@@ -327,8 +325,9 @@ class Renderer:
             pool.isect = ti.ndarray(ti.i32, (cap,))
             pool.isect_cap = cap
         b["isect_base"].from_numpy(base)
-        sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"], b["keys_b"],
-             b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"], pool.isect)
+        self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"],
+                   b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
+                   pool.isect)
 
     def _chunks(self, poses: list[Pose], size: int | None = None):
         """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""

@@ -63,15 +63,16 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
         scale), viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx,
-        cy), width, height, num_poses, extent [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f
-        for this camera: the bound of an early, conservative frustum test before the covariance);
+        cy), width, height, tile (tile edge in pixels: the renders' or the derivative pass's), num_poses, extent
+        [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f for this camera: the bound of an early,
+        conservative frustum test before the covariance);
         outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
         ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
         (fields named in ``layout.Rec``).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
-    eps2d, tile = config.eps2d, config.tile_size
+    eps2d = config.eps2d
     alpha_min = config.alpha_min
     inria = config.radius_mode == "inria"
     log_inv_amin = math.log(1.0 / alpha_min)
@@ -88,6 +89,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
         width: ti.i32,
         height: ti.i32,
+        tile: ti.i32,
         num_poses: ti.i32,
         extent: ti.types.ndarray(dtype=ti.f32, ndim=1),
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
@@ -101,6 +103,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         hf = ti.cast(height, ti.f32)
         tiles_x = (width + tile - 1) // tile
         tiles_y = (height + tile - 1) // tile
+        tf = ti.cast(tile, ti.f32)
         lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
         # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
         early_a, early_b = extent[0], extent[1]
@@ -156,10 +159,10 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
                     continue
                 if mx + rx <= 0.0 or mx - rx >= wf or my + ry <= 0.0 or my - ry >= hf:
                     continue
-                x0 = ti.min(ti.max(0, ti.cast(ti.floor((mx - rx) / tile), ti.i32)), tiles_x)
-                x1 = ti.min(ti.max(0, ti.cast(ti.ceil((mx + rx) / tile), ti.i32)), tiles_x)
-                y0 = ti.min(ti.max(0, ti.cast(ti.floor((my - ry) / tile), ti.i32)), tiles_y)
-                y1 = ti.min(ti.max(0, ti.cast(ti.ceil((my + ry) / tile), ti.i32)), tiles_y)
+                x0 = ti.min(ti.max(0, ti.cast(ti.floor((mx - rx) / tf), ti.i32)), tiles_x)
+                x1 = ti.min(ti.max(0, ti.cast(ti.ceil((mx + rx) / tf), ti.i32)), tiles_x)
+                y0 = ti.min(ti.max(0, ti.cast(ti.floor((my - ry) / tf), ti.i32)), tiles_y)
+                y1 = ti.min(ti.max(0, ti.cast(ti.ceil((my + ry) / tf), ti.i32)), tiles_y)
                 nt = (x1 - x0) * (y1 - y0)
                 if nt <= 0:
                     continue

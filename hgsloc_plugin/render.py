@@ -26,6 +26,7 @@ from .kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_
 from .kernels.layout import Rec, Stat
 from .kernels.pose_grad import NDER, NXI, blend_grad_kernel, projection_grad_kernel
 from .kernels.projection import projection_kernel
+from .kernels.readback import readback_kernel
 from .kernels.tile_sort import RADIX, count_kernel, tile_sort_kernel
 from .pose import Pose
 from .scene import GaussianScene
@@ -81,6 +82,17 @@ class _Workspace:
     batch: int
     bufs: dict
     gaussians: int = 0  # columns of the per-Gaussian buffers (>= the renderer's n; 0 for a per-size workspace)
+
+
+_HOST_DTYPES = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}
+
+
+def read_rows(arr: ti.Ndarray, n: int) -> np.ndarray:
+    """The first ``n`` rows of a device array [B, ...] as a host array [n, ...] (``kernels/readback.py``: a
+    workspace's ``to_numpy`` copies all B poses)."""
+    out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
+    readback_kernel()(arr, out)
+    return out
 
 
 def _projection_records(B: int, n: int) -> dict:
@@ -314,7 +326,7 @@ class Renderer:
                       b["intrin"], camera.width, camera.height, ts, B, b["extent"], b["depth"], b["rect"],
                       b["ntiles"], b["packed"])
         self._count(b["ntiles"], B, self.n, b["totals"])
-        totals = b["totals"].to_numpy()[:B]
+        totals = read_rows(b["totals"], B)
         base = np.zeros(ws.batch, np.int64)
         base[1:B] = np.cumsum(totals)[:-1]
         need = int(totals.sum())
@@ -363,7 +375,7 @@ class Renderer:
         for part in self._chunks(poses):
             ws = self._workspace(camera, min(len(poses), self.chunk))
             self._geometry(camera, part, ws, (0.0, 0.0, 0.0))
-            out.append(ws.bufs["ntiles"].to_numpy()[:len(part)] > 0)
+            out.append(read_rows(ws.bufs["ntiles"], len(part)) > 0)
         return np.concatenate(out)
 
     def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
@@ -372,9 +384,9 @@ class Renderer:
         for part in self._chunks(poses):
             b = self._blend_images(camera, part, background, min(len(poses), self.chunk))
             n = len(part)
-            rgbs.append(b["rgb"].to_numpy()[:n])
-            alphas.append(b["alpha"].to_numpy()[:n])
-            depths.append(b["dimg"].to_numpy()[:n])
+            rgbs.append(read_rows(b["rgb"], n))
+            alphas.append(read_rows(b["alpha"], n))
+            depths.append(read_rows(b["dimg"], n))
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
 
     @staticmethod
@@ -411,7 +423,7 @@ class Renderer:
             window.vertical_cost_kernel(bool(luminance))(b["win_h"], qstats, b["alpha"], float(mask_alpha), n,
                                                          b["win_rows"])
             self._reduce(b["win_rows"], n, b["win_out"])
-            out.append(b["win_out"].to_numpy()[:n])
+            out.append(read_rows(b["win_out"], n))
         return np.concatenate(out)
 
     @staticmethod
@@ -453,7 +465,7 @@ class Renderer:
                 self._blend_cost(b["packed"], b["tile_start"], self._pool.isect, b["isect_base"], b["background"], tx,
                                  len(part), target, float(mask_alpha), b["run_stats"])
             self._reduce(b["run_stats"], len(part), b["stats"])
-            out.append(b["stats"].to_numpy()[:len(part)])
+            out.append(read_rows(b["stats"], len(part)))
         return np.concatenate(out)
 
     # ---- pose derivatives (kernels/pose_grad.py, kernels/window_grad.py) ----
@@ -502,9 +514,9 @@ class Renderer:
         for part in self._chunks(poses, self.grad_chunk):
             g = self._derivative_images(camera, part, background)
             n = len(part)
-            rgbs.append(g["rgb"].to_numpy()[:n])
-            alphas.append(g["alpha"].to_numpy()[:n])
-            ders.append(g["drgb"].to_numpy()[:n].reshape(n, camera.height, camera.width, 3, NXI))
+            rgbs.append(read_rows(g["rgb"], n))
+            alphas.append(read_rows(g["alpha"], n))
+            ders.append(read_rows(g["drgb"], n).reshape(n, camera.height, camera.width, 3, NXI))
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
 
     def pose_gradient(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
@@ -547,8 +559,8 @@ class Renderer:
                                         g["w_means"], n, g["w_sys"])
             self._reduce(g["w_rows"], n, g["w_out2"])
             self._reduce(g["w_sys"], n, g["w_outs"])
-            sums = g["w_out2"].to_numpy()[:n]
-            sys = g["w_outs"].to_numpy()[:n]
+            sums = read_rows(g["w_out2"], n)
+            sys = read_rows(g["w_outs"], n)
             scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
             hess = np.zeros((n, NXI, NXI))
             hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]

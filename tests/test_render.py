@@ -212,3 +212,24 @@ def test_window_reference_agrees_with_kornia_ssim_inside_the_border():
     s, n = window_cost(a, inner, b, mask_alpha=0.5, luminance=True)
     assert n == 30 * 40
     assert s / n == pytest.approx(float(kmap[5:-5, 5:-5].mean()), abs=1e-5)
+
+
+@pytest.mark.parametrize("dtype,shape", [("f32", (14, 6, 5, 3)), ("f32", (14, 6, 5)), ("f64", (14, 2)),
+                                         ("i64", (14,)), ("i32", (3, 7))])
+def test_read_rows_copies_only_the_rows_asked_for(dtype, shape):
+    """``render.read_rows`` (``kernels/readback.py``) returns a workspace buffer's first n rows, equal to
+    ``to_numpy()[:n]`` for every dtype and rank the renderer reads back."""
+    import taichi as ti
+
+    from hgsloc_plugin.render import read_rows
+
+    hp.init()
+    ti_dtype = {"f32": ti.f32, "f64": ti.f64, "i64": ti.i64, "i32": ti.i32}[dtype]
+    values = (np.arange(int(np.prod(shape))).reshape(shape) * 3 - 7).astype({"f32": np.float32, "f64": np.float64,
+                                                                              "i64": np.int64, "i32": np.int32}[dtype])
+    arr = ti.ndarray(ti_dtype, shape)
+    arr.from_numpy(values)
+    for n in (1, 2, shape[0]):
+        got = read_rows(arr, n)
+        assert got.shape == (n,) + shape[1:] and got.dtype == values.dtype
+        np.testing.assert_array_equal(got, values[:n])

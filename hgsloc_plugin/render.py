@@ -10,7 +10,6 @@ one call go through each kernel stage in one launch (the batch is a leading dime
 
 from __future__ import annotations
 
-import dataclasses
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -158,9 +157,6 @@ class Renderer:
         self._project = projection_kernel(self.config, self.sh_degree)
         self._count = count_kernel()
         self._sort = tile_sort_kernel(self.config)
-        # the derivative pass bins at its own tile size (RasterConfig.grad_tile_size): shorter per-pixel lists;
-        # the projection takes the tile size as an argument and the sort reads the tile counts, so both serve it
-        self._grad_config = dataclasses.replace(self.config, tile_size=self.config.grad_tile_size)
         mode = self.config.blend
         if mode == "auto":
             mode = "pixel" if current_arch() == "cuda" else "splat"
@@ -241,7 +237,7 @@ class Renderer:
         kernels and workspaces (the pool: kernels take N as an argument or read it from the Gaussians)."""
         sub = object.__new__(Renderer)
         sub.__dict__.update({k: v for k, v in self.__dict__.items() if not k.startswith("_") or k in (
-            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool", "_grad_config")})
+            "_project", "_count", "_sort", "_blend_img", "_blend_cost", "_reduce", "_pool")})
         sub.n = n
         sub.source_index = np.asarray(source_index)
         return sub
@@ -284,7 +280,7 @@ class Renderer:
         (kernels take the pose count as an argument), grown when a call needs more, with the pool's per-Gaussian
         buffers (:meth:`_shared`). A search's batches vary from 1 to 13 poses; re-allocating per size cost 35-70
         ms at 50k Gaussians and about 1 s at 1M (allocation zero-fills), more than the renders of an expansion."""
-        ts = self._grad_config.tile_size if grad else self.config.tile_size
+        ts = self.config.grad_tile_size if grad else self.config.tile_size
         key = (camera.width, camera.height, ts)
         ws = self._pool.ws.get(key)
         if ws is None or ws.batch < batch:
@@ -297,16 +293,16 @@ class Renderer:
                 viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
                 extent=nd(ti.f32, (2,)), totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
                 hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)),
-                tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)), tiles=(tx, ty),
+                tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)), tile=ts, tiles=(tx, ty),
             )
             ws = _Workspace(B, bufs)
             self._pool.ws[key] = ws
         ws.bufs.update(self._shared("records", ws.batch, _projection_records))
         return ws
 
-    def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background, grad: bool = False) -> None:
-        """Projection and tile sort for up to ``ws.batch`` poses (``grad``: at the derivative pass's tile size, in
-        a workspace from ``_workspace(..., grad=True)``)."""
+    def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background) -> None:
+        """Projection and tile sort for up to ``ws.batch`` poses, binned at the workspace's tile size (the one
+        projection and sort kernel serve the renders' tiles and the derivative pass's)."""
         b = ws.bufs
         B = len(poses)
         vm = np.zeros((ws.batch, 3, 4), np.float32)
@@ -321,9 +317,8 @@ class Renderer:
                                          cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
         b["background"].from_numpy(np.asarray(background, np.float32).reshape(3))
         tx, ty = b["tiles"]
-        ts = self._grad_config.tile_size if grad else self.config.tile_size
         self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
-                      b["intrin"], camera.width, camera.height, ts, B, b["extent"], b["depth"], b["rect"],
+                      b["intrin"], camera.width, camera.height, b["tile"], B, b["extent"], b["depth"], b["rect"],
                       b["ntiles"], b["packed"])
         self._count(b["ntiles"], B, self.n, b["totals"])
         totals = read_rows(b["totals"], B)
@@ -493,7 +488,7 @@ class Renderer:
         """Geometry, derivative records and derivative blending of up to ``grad_chunk`` poses; the images stay on
         the device (``rgb``, ``alpha``, ``drgb`` of the derivative workspace)."""
         ws = self._workspace(camera, len(part), grad=True)
-        self._geometry(camera, part, ws, background, grad=True)
+        self._geometry(camera, part, ws, background)
         b = ws.bufs
         g = self._grad_workspace(camera, min(self.grad_chunk, len(part))).bufs
         n = len(part)
@@ -503,8 +498,8 @@ class Renderer:
         # blend.splat_image does) measured 1.7x slower on the CPU here (248 vs 148 ms at 320x240): the
         # derivative arithmetic, not the rejected pairs, dominates, and registers beat the scratch array
         tx, _ = b["tiles"]
-        blend_grad_kernel(self._grad_config)(b["packed"], g["dpacked"], b["tile_start"], self._pool.isect,
-                                             b["isect_base"], b["background"], tx, n, g["rgb"], g["alpha"], g["drgb"])
+        blend_grad_kernel(self.config)(b["packed"], g["dpacked"], b["tile_start"], self._pool.isect, b["isect_base"],
+                                       b["background"], tx, n, g["rgb"], g["alpha"], g["drgb"])
         return g
 
     def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):

@@ -113,8 +113,8 @@ def projection_grad_kernel(config: RasterConfig):
 @functools.cache
 def blend_grad_kernel(config: RasterConfig):
     """Compiled ``blend_grad`` (one task per pixel): colour [B, H, W, 3], alpha [B, H, W] and the colour's
-    derivatives drgb [B, H, W, 3 * 6] (channel-major)."""
-    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
+    derivatives drgb [B, H, W, 3 * 6] (channel-major). Its tile lists are binned at ``config.grad_tile_size``."""
+    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.grad_tile_size
 
     @ti.kernel
     def blend_grad(

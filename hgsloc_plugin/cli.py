@@ -126,7 +126,8 @@ def cmd_check(args) -> int:
     else:
         for k, n in enumerate(rep.names):
             alt = min((h for h in rep.costs if h != "as given"), key=lambda h: rep.costs[h][k])
-            print(f"{n}: cs cost {rep.costs['as given'][k]:.3f} (best other reading '{alt}' "
+            moved = f", aligned {rep.aligned['as given'][k]:.3f}" if "as given" in rep.aligned else ""
+            print(f"{n}: cs cost {rep.costs['as given'][k]:.3f}{moved} (best other reading '{alt}' "
                   f"{rep.costs[alt][k]:.3f}), PSNR {rep.psnr[k]:.1f} dB, SSIM {rep.ssim[k]:.3f}")
         print(f"{rep.verdict}: {rep.message()}")
     return 0 if rep.ok else 1

@@ -15,7 +15,9 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.check import check_poses
+from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.pose import so3_exp
+from hgsloc_plugin.refine.refiner import median_depth
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FLIP = np.diag([1.0, -1.0, -1.0])
@@ -57,6 +59,30 @@ def test_check_passes_true_poses_and_names_each_convention_error(name):
     moved = hp.Pose.from_Rt(so3_exp(rng.normal(size=3) * 0.5), rng.normal(size=3))
     other = run({n: p @ moved for n, p in gt.items()})
     assert other.verdict == "disagree" and not other.ok, other.message()
+
+
+@pytest.mark.parametrize("name,cm,deg", [("snow", 10.0, 3.0), ("lego", 3.0, 1.0)])
+def test_check_accepts_priors_a_localizer_leaves_off(name, cm, deg):
+    """Priors off by a localizer's error (cm-equivalent: scaled by the median depth over 2 m): the raw costs cannot
+    tell them from a wrong frame (the check used to stop `refine` on them); aligned, they agree. The same priors
+    with a convention error are still named."""
+    d, cam, scene, gt = _dataset(name)
+    bg = (1.0, 1.0, 1.0) if name == "lego" else (0.0, 0.0, 0.0)
+    rng = np.random.default_rng(3)
+    noisy = {n: se3_noise(p, deg, cm / 200.0 * median_depth(scene, cam, p), rng) for n, p in gt.items()}
+
+    def run(poses, align=True):
+        return check_poses(scene, poses, lambda n: d / "queries" / n, lambda n, w, h: cam, sample=4, background=bg,
+                           align=align)
+
+    raw = run(noisy, align=False)
+    assert raw.verdict != "ok" and not raw.aligned, raw.message()
+    rep = run(noisy)
+    assert rep.verdict == "ok", rep.message()
+    assert "as given" in rep.aligned and "after aligning" in rep.message()
+    assert rep.median() < 0.7 * float(np.median(rep.costs["as given"]))
+    wrong = run({n: ERRORS["xyzw quaternion"](p) for n, p in noisy.items()})
+    assert wrong.verdict == "convention error" and wrong.reading == "xyzw quaternion", wrong.message()
 
 
 def _trainer_folder(tmp_path: Path, invert: bool = False) -> Path:

@@ -65,18 +65,22 @@ def load_dataset(name: str):
     return cam, scene, queries, (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
 
 
-def localizer_errors(method: str) -> list[hp.Pose]:
-    """Camera-frame errors E = T_est T_gt^-1 of a localizer on all 7-Scenes test frames (pGT frame)."""
+def localizer_errors(method: str, inliers: list | None = None) -> list[hp.Pose]:
+    """Camera-frame errors E = T_est T_gt^-1 of a localizer on all 7-Scenes test frames (pGT frame); each
+    estimate's inlier count (None where the file has none) is appended to ``inliers`` when given."""
     from hgsloc_plugin.adapters import read_poses
+    from hgsloc_plugin.adapters.confidence import record_inliers
 
     out = []
     for scene_dir in sorted((DATA / "poses" / "7scenes").glob("*")):
         est, gt = read_poses(scene_dir / f"{method}.txt"), read_poses(scene_dir / "pgt_sfm_test.txt")
-        by_key = {n.replace("/", "-"): p for n, p in est.items()}
+        by_key = {n.replace("/", "-"): n for n in est}
         for n, g in gt.items():
-            e = by_key.get(n.replace("/", "-"))
-            if e is not None and g is not None:
-                out.append(e @ g.inv())
+            k = by_key.get(n.replace("/", "-"))
+            if k is not None and est[k] is not None and g is not None:
+                out.append(est[k] @ g.inv())
+                if inliers is not None:
+                    inliers.append(record_inliers(est.dialect, est.record(k).tokens))
     return out
 
 

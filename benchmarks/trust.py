@@ -15,7 +15,10 @@ image motion on every scene. Priors:
 - ``1 cm / 0.5 deg, region 2 cm / 1 deg``: the 1 cm priors with the trust region set from the localizer's
   expected error (``--max-shift`` / ``--max-rotation``, here twice it) instead of from the coarsest step;
 - ``ACE-shaped`` / ``Marepo-shaped``: the camera-frame errors of the real ACE / Marepo estimates of 7-Scenes
-  against the SfM pGT (``../shared/data/poses/7scenes``), one drawn per query, so heavy tails included.
+  against the SfM pGT (``../shared/data/poses/7scenes``), one drawn per query, so heavy tails included;
+- ``ACE-shaped, region from ACE's inliers``: the same priors, each with the inlier count ACE wrote for the
+  estimate its error was drawn from, which sets the query's trust region (``adapters/confidence.py``), as
+  ``hgsloc refine`` does for an ACE file.
 
 Per row: queries improved / unchanged / made worse (worse: the returned pose is > 1 cm or > 0.5 deg further from
 the truth than the prior), recall at 5 cm 5 deg / 2 cm 2 deg / 1 cm 1 deg before and after, and how well the
@@ -43,6 +46,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import DATA, load_dataset, localizer_errors, shaped_prior  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.adapters.confidence import inlier_region  # noqa: E402
 from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
@@ -55,6 +59,9 @@ RECALLS = ((5.0, 5.0), (2.0, 2.0), (1.0, 1.0))
 # rows with a trust region set from the localizer's expected error (--max-shift / --max-rotation, in equivalent
 # cm per query): row name -> (the priors' row, shift cm, rotation deg)
 REGIONS = {"1 cm / 0.5 deg, region 2 cm / 1 deg": ("1 cm / 0.5 deg", 2.0, 1.0)}
+# rows whose priors carry the localizer's inlier count, which sets each query's region (adapters/confidence.py,
+# what `hgsloc refine` does with ACE files): row name -> the priors' row
+INLIER_ROWS = {"ACE-shaped, region from ACE's inliers": "ACE-shaped"}
 
 
 def snow_case(n):
@@ -93,18 +100,25 @@ def donut_case(n):
                           hp.Camera.from_fov(320, 240, 50.0), gts, metric=False)
 
 
-def priors(gts, scale) -> dict:
-    """protocol name -> one prior per query."""
+def priors(gts, scale, inliers: dict | None = None, draws: int = 1) -> dict:
+    """protocol name -> priors, query k's at positions k, k + n, ...: one per query, ``draws`` per query for the
+    localizer-shaped rows; ``inliers``, when given, gets protocol name -> the localizer's inlier count of each
+    prior's error (localizer-shaped rows)."""
     out = {}
     for cm, deg in LEVELS:
         rng = np.random.default_rng(int(10 * cm + deg))
         out[f"{cm:g} cm / {deg:g} deg"] = [se3_noise(g, deg, cm / s, rng) for g, s in zip(gts, scale)]
     if (DATA / "poses" / "7scenes").exists():
         for method, label in (("ace", "ACE-shaped"), ("marepo", "Marepo-shaped")):
-            errs = localizer_errors(method)
+            counts: list = []
+            errs = localizer_errors(method, counts)
             rng = np.random.default_rng(300)
+            picks = [int(rng.integers(len(errs))) for _ in range(draws) for _ in gts]
             # shaped_prior scales by depth / 2 m; here depth / 2 m = 100 / scale (scale = 200 / depth)
-            out[label] = [shaped_prior(g, errs[int(rng.integers(len(errs)))], 200.0 / s) for g, s in zip(gts, scale)]
+            out[label] = [shaped_prior(gts[j % len(gts)], errs[i], 200.0 / scale[j % len(gts)])
+                          for j, i in enumerate(picks)]
+            if inliers is not None:
+                inliers[label] = [counts[i] for i in picks]
     else:
         print("skipping localizer-shaped priors: ../shared/data/poses/7scenes not found", file=sys.stderr)
     return out
@@ -123,33 +137,42 @@ def recall(e: np.ndarray) -> str:
     return "/".join(f"{100 * np.mean((e[:, 0] <= t) & (e[:, 1] <= r)):.0f}" for t, r in RECALLS)
 
 
-def run_case(case, config: hp.RefineConfig) -> list[str]:
+def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
     label, scene, cam, gts, imgs, scale, bg = case
     refiner = hp.HGSLocPlugin(scene, config.replace(background=bg))
-    lines = [f"\n### {label}: {len(gts)} queries, {scene.num_gaussians} Gaussians\n",
+    lines = [f"\n### {label}: {len(gts)} queries ({draws} priors each in the localizer-shaped rows), "
+             f"{scene.num_gaussians} Gaussians\n",
              "| prior | median before (worst) | median after (worst) | improved / unchanged / worse | "
              "recall 5/2/1 before | after | accepted | median err accepted / rejected search | AUC | "
              "sigma t / R (err / sigma) | s / q |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
-    rows = priors(gts, scale)
+    counts: dict = {}
+    rows = priors(gts, scale, counts, draws)
     rows.update({name: rows[src] for name, (src, _, _) in REGIONS.items()})
+    rows.update({name: rows[src] for name, src in INLIER_ROWS.items() if src in rows})
     for name, ps in rows.items():
         t0 = time.perf_counter()
         e0, e1, es, conf, acc, sig = [], [], [], [], [], []
-        for k, (img, gt, prior) in enumerate(zip(imgs, gts, ps)):
+        for j, prior in enumerate(ps):
+            k = j % len(gts)
+            img, gt = imgs[k], gts[k]
             by = refiner
             if name in REGIONS:  # the region in scene units for this query (scale: equivalent cm per unit)
                 _, cm, deg = REGIONS[name]
                 by = hp.HGSLocPlugin(scene, refiner.config.replace(max_shift=cm / scale[k], max_rotation_deg=deg))
-            r = by.refine(img, cam, prior, name=str(k))
+            region = {}
+            if name in INLIER_ROWS:  # as the pipeline sets it for a record of an ACE file
+                shift_rot = inlier_region(counts[INLIER_ROWS[name]][j], median_depth(scene, cam, prior))
+                region = dict(zip(("max_shift", "max_rotation_deg"), shift_rot or (None, None)))
+            r = by.refine(img, cam, prior, name=str(k), **region)
             for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
                 t, a = p.errors_to(gt)
                 lst.append((t * scale[k], a))
             conf.append(r.confidence if r.accepted else 0.0)
             acc.append(r.accepted)
             sig.append((r.sigma_t * scale[k], r.sigma_r_deg))
-        sec = (time.perf_counter() - t0) / len(gts)
+        sec = (time.perf_counter() - t0) / len(ps)
         e0, e1, es, conf, acc, sig = map(np.array, (e0, e1, es, conf, acc, sig))
         worse = (e1[:, 0] > e0[:, 0] + WORSE_CM) | (e1[:, 1] > e0[:, 1] + WORSE_DEG)
         better = ~worse & ((e1[:, 0] < e0[:, 0] - 1e-9) | (e1[:, 1] < e0[:, 1] - 1e-9)) & acc
@@ -181,6 +204,7 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=["snow", "room", "donut"])
     ap.add_argument("--queries", type=int, default=6, help="queries per scene (snow has 6)")
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--draws", type=int, default=3, help="priors per query in the localizer-shaped rows")
     ap.add_argument("--out", default=None, help="also write the tables as Markdown here")
     args = ap.parse_args()
     hp.init()
@@ -193,7 +217,7 @@ def main() -> None:
     for s in args.scenes:
         case = makers[s](args.queries)
         if case is not None:
-            lines += run_case(case, config)
+            lines += run_case(case, config, args.draws)
     lines.append(f"\nTotal {time.time() - t_start:.0f} s.")
     print(lines[-1])
     if args.out:

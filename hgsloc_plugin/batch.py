@@ -18,23 +18,33 @@ logger = logging.getLogger("hgsloc_plugin")
 
 @dataclass
 class Query:
-    """One query: its position in the batch, name, image (path or array), camera and coarse pose."""
+    """One query: its position in the batch, name, image (path or array), camera, coarse pose and, optionally,
+    its own trust region (``Refiner.refine``'s ``max_shift`` / ``max_rotation_deg``)."""
 
     index: int
     name: str | None
     image: object
     camera: object
     coarse_pose: object
+    max_shift: float | None = None
+    max_rotation_deg: float | None = None
+
+    def refine_with(self, refiner: Refiner) -> RefineResult:
+        """``refiner.try_refine`` on this query."""
+        return refiner.try_refine(self.image, self.camera, self.coarse_pose, name=self.name,
+                                  max_shift=self.max_shift, max_rotation_deg=self.max_rotation_deg)
 
 
 def as_queries(items: Iterable) -> list[Query]:
-    """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys."""
+    """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys (and optionally
+    ``max_shift`` / ``max_rotation_deg``)."""
     out = []
     for k, it in enumerate(items):
         if isinstance(it, Query):
             out.append(it)
         elif isinstance(it, dict):
-            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"]))
+            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"], it.get("max_shift"),
+                             it.get("max_rotation_deg")))
         else:
             image, camera, coarse, *rest = it
             out.append(Query(k, rest[0] if rest else None, image, camera, coarse))
@@ -76,4 +86,4 @@ def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: 
                                workers=max(1, workers or 1), address=ray_address)
         return
     for q in queries:
-        yield q, refiner.try_refine(q.image, q.camera, q.coarse_pose, name=q.name)
+        yield q, q.refine_with(refiner)

@@ -58,7 +58,8 @@ def cmd_refine(args) -> int:
     rep = refine_pose_file(args.scene, Path(args.poses), Path(args.images), _intrinsics(args), Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
-                           workers=args.workers, ray_address=args.ray_address)
+                           workers=args.workers, ray_address=args.ray_address,
+                           inlier_region=not args.no_inlier_region)
     print(summary_line(rep["totals"], args.out))
     return 0
 
@@ -224,6 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
                                        "(scene units; default: 8 coarsest steps)")
     r.add_argument("--max-rotation", help="trust region: rotation from the prior, e.g. 5deg "
                                           "(default: 8 coarsest steps)")
+    r.add_argument("--no-inlier-region", action="store_true",
+                   help="do not set each query's trust region from the inlier count of ACE/GLACE pose files "
+                        "(default: a confident pose gets a tight region)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=int, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

@@ -33,8 +33,7 @@ def _worker_class(ray):
             self.refiner = Refiner(scene, config, raster)
 
         def refine_chunk(self, queries):
-            return [(q.index, self.refiner.try_refine(q.image, q.camera, q.coarse_pose, name=q.name))
-                    for q in queries]
+            return [(q.index, q.refine_with(self.refiner)) for q in queries]
 
     return RefineWorker
 

@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from .adapters.confidence import inlier_region, record_inliers
 from .adapters.names import resolve_image
 from .adapters.posefile import PoseFile, read_poses, write_poses
 from .batch import Query, run_batch
@@ -22,6 +23,7 @@ from .image import load_image
 from .plugin import HGSLocPlugin
 from .pose import Pose
 from .refine import RefineConfig, RefineResult
+from .refine.refiner import median_depth
 from .scene import GaussianScene
 
 logger = logging.getLogger("hgsloc_plugin")
@@ -106,8 +108,10 @@ def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose
     return done, refined
 
 
-def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera]) -> list[Query]:
-    """Queries to refine: name, image path, intrinsics, prior. Unusable ones are recorded as failed at once."""
+def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera],
+             region_of: Callable[[str, Camera, Pose], tuple[float, float] | None]) -> list[Query]:
+    """Queries to refine: name, image path, intrinsics, prior and its own trust region (``region_of``; None =
+    the refiner's). Unusable ones are recorded as failed at once."""
     from PIL import Image
 
     out = []
@@ -120,11 +124,29 @@ def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[st
             img_path = resolve_image(name, images)
             with Image.open(img_path) as im:
                 w, h = im.size
-            out.append(Query(len(out), name, str(img_path), intrinsics(name, w, h), coarse))
+            cam = intrinsics(name, w, h)
+            region = region_of(name, cam, coarse) or (None, None)
+            out.append(Query(len(out), name, str(img_path), cam, coarse, *region))
         except Exception as exc:  # one bad query never stops the run
             logger.warning("%s: %s", name, exc)
             run.record(name, error=f"{type(exc).__name__}: {exc}")
     return out
+
+
+def _region_of(pf: PoseFile, refiner: HGSLocPlugin) -> Callable[[str, Camera, Pose], tuple | None]:
+    """name, camera, prior -> (max_shift, max_rotation_deg) from the record's inlier count, None without one;
+    a bound set in the refiner's config stays (it is passed as None)."""
+    cfg = refiner.config
+
+    def region_of(name: str, camera: Camera, prior: Pose):
+        inliers = record_inliers(pf.dialect, pf.record(name).tokens)
+        region = None if inliers is None else inlier_region(inliers, median_depth(refiner.scene, camera, prior))
+        if region is None:
+            return None
+        return (None if cfg.max_shift is not None else region[0],
+                None if cfg.max_rotation_deg is not None else region[1])
+
+    return region_of
 
 
 def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Path, images: Path,
@@ -132,7 +154,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
                      config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
                      gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
                      save_every: int = 10, settings: dict | None = None, workers: int = 0,
-                     ray_address: str | None = None) -> dict:
+                     ray_address: str | None = None, inlier_region: bool = True) -> dict:
     """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
 
     Args:
@@ -144,6 +166,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         figures: folder for comparison figures of each refined query.
         workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
             (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
+        inlier_region: in files that hold each pose's RANSAC inlier count (ACE, GLACE), set each query's trust
+            region from it (``adapters/confidence.py``); a region set in ``config`` wins.
 
     Returns:
         The report dict (also written as JSON).
@@ -161,7 +185,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
     }
     run = _Run(pf, output, report, refined)
     names = list(pf)[: limit if limit is not None else None]
-    queries = _queries(run, [n for n in names if n not in done], images, intrinsics)
+    queries = _queries(run, [n for n in names if n not in done], images, intrinsics,
+                       _region_of(pf, refiner) if inlier_region else lambda *_: None)
     count = 0
 
     def on_result(q: Query, res: RefineResult) -> None:

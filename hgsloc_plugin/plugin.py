@@ -25,7 +25,7 @@ class HGSLocPlugin(Refiner):
 
         Args:
             items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
-                or dicts with those keys.
+                or dicts with those keys (and optionally each query's ``max_shift`` / ``max_rotation_deg``).
             workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
                 (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
         """

@@ -61,6 +61,8 @@ class RefineResult:
         search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
             not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
+        max_shift / max_rotation_deg: the trust region the query ran with (scene units, degrees): the
+            ``refine`` call's, else ``RefineConfig``'s, else the automatic one.
         expansions / renders: search effort (renders: every plain render of the query, the polish's line search
             included); levels: per-level details; seconds: wall time.
         working_set: Gaussians the search rendered (the largest of the query's working-set selections; the whole
@@ -99,6 +101,8 @@ class RefineResult:
     polish: list[PolishStats] = field(default_factory=list)
     route: str | None = None
     gradient_rejected: str | None = None
+    max_shift: float = math.nan
+    max_rotation_deg: float = math.nan
 
     @property
     def derivative_passes(self) -> int:
@@ -121,6 +125,7 @@ class RefineResult:
             "working_set_selections": self.working_set_selections,
             "derivative_passes": self.derivative_passes, "route": self.route,
             "gradient_rejected": self.gradient_rejected, "polish": [p.to_dict() for p in self.polish],
+            "max_shift": self.max_shift, "max_rotation_deg": self.max_rotation_deg,
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
             "assessment": self.assessment.to_dict() if self.assessment else None,
@@ -178,7 +183,8 @@ class Refiner:
         self.raster = raster or RasterConfig()
         self.renderer = get_renderer(scene, self.raster)
 
-    def _plan(self, camera: Camera, coarse: Pose) -> _Plan:
+    def _plan(self, camera: Camera, coarse: Pose, max_shift: float | None = None,
+              max_rotation_deg: float | None = None) -> _Plan:
         cfg = self.config
         cam_final = camera.with_max_side(cfg.score_max_side)
         coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
@@ -196,17 +202,21 @@ class Refiner:
             auto_t, auto_r = 0.5 * depth, 10.0
         else:
             auto_t, auto_r = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
-        max_t = cfg.max_shift if cfg.max_shift is not None else auto_t
-        max_r = cfg.max_rotation_deg if cfg.max_rotation_deg is not None else auto_r
+        max_t = next(v for v in (max_shift, cfg.max_shift, auto_t) if v is not None)
+        max_r = next(v for v in (max_rotation_deg, cfg.max_rotation_deg, auto_r) if v is not None)
         return _Plan(cam_final, cam_coarse, cam_polish, levels, depth, max_t, max_r)
 
-    def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None) -> RefineResult:
+    def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
+               max_shift: float | None = None, max_rotation_deg: float | None = None) -> RefineResult:
         """Refine one query.
 
         Args:
             image: [H, W, 3] uint8 or float in [0, 1], torch [3, H, W], or a path; its size must match ``camera``.
             camera: the query's pinhole intrinsics at the image's size.
             coarse_pose: world-to-camera prior.
+            max_shift / max_rotation_deg: this query's trust region (camera-centre shift in scene units, rotation
+                in degrees), e.g. from the localizer's confidence in it (``adapters/confidence.py``); each
+                overrides ``RefineConfig``'s when given.
 
         Returns:
             A :class:`RefineResult`; its pose is the search's only when that passes the acceptance rule
@@ -218,12 +228,16 @@ class Refiner:
             raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
         if not isinstance(coarse_pose, Pose):
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
+        for key, v in (("max_shift", max_shift), ("max_rotation_deg", max_rotation_deg)):
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{key} must be a positive number, got {v}")
         img = load_image(image, name=name or "image", background=cfg.background)
         img = check_size(img, camera, cfg.resize_query, name or "image")
-        plan = self._plan(camera, coarse_pose)
+        plan = self._plan(camera, coarse_pose, max_shift, max_rotation_deg)
         renderer = self._working_set(plan, coarse_pose)
         scorer = Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha)
-        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n)
+        result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n,
+                              max_shift=plan.max_t, max_rotation_deg=plan.max_r)
         try:
             self._run(plan, renderer, scorer, img, coarse_pose, result)
         finally:
@@ -322,11 +336,13 @@ class Refiner:
             result.polish.append(stats)
         return pose
 
-    def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None) -> RefineResult:
+    def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None,
+                   max_shift: float | None = None, max_rotation_deg: float | None = None) -> RefineResult:
         """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""
         t0 = time.perf_counter()
         try:
-            return self.refine(image, camera, coarse_pose, name=name)
+            return self.refine(image, camera, coarse_pose, name=name, max_shift=max_shift,
+                               max_rotation_deg=max_rotation_deg)
         except Exception as exc:  # recorded per query; a batch goes on
             logger.warning("query %s failed: %s", name, exc)
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,

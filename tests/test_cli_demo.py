@@ -12,6 +12,7 @@ import pytest
 
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
+from hgsloc_plugin.adapters.confidence import Q99_DEG, REGION_MARGIN
 from hgsloc_plugin.cli import main
 from hgsloc_plugin.demo.queries import query_poses
 from hgsloc_plugin.demo.scene import make_room_scene
@@ -51,6 +52,11 @@ def test_cli_refine_evaluate_and_resume(tiny_case, capsys):
     assert main(args) == 0
     rep = json.loads((d / "refined.txt.json").read_text())
     assert len(rep["queries"]) == 2 and rep["dialect"] == "ace"
+    # the ACE file's inlier counts (500: a doubtful pose) set each query's rotation bound; --no-inlier-region not
+    assert [q["max_rotation_deg"] for q in rep["queries"].values()] == [pytest.approx(REGION_MARGIN * Q99_DEG[0])] * 2
+    assert main(args[:-1] + ["1", "--out", str(d / "plain.txt"), "--no-inlier-region", "--skip-check"]) == 0
+    plain = json.loads((d / "plain.txt.json").read_text())["queries"]
+    assert list(plain.values())[0]["max_rotation_deg"] != pytest.approx(REGION_MARGIN * Q99_DEG[0])
     assert read_poses(out).dialect == "ace" and len(read_poses(out)) == 3
     # resume: the third query is refined, the first two are not redone, no duplicate lines
     args_all = [a for a in args if a not in ("--limit", "2")]

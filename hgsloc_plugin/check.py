@@ -9,12 +9,12 @@ A localizer's pose is a few centimetres and a degree or two off, and on a real m
 the pose as given towards that of an unrelated image (snow, median cs cost of the sample: 0.26 at the SfM poses,
 0.36 at 3 cm-equivalent / 1 deg, 0.46 at 10 cm / 3 deg, 0.53 at 20 cm / 5 deg; wrong readings 0.46-1.0; lego
 0.20, 0.90 from 3 cm / 1 deg on). So when the raw costs are not conclusive the pose as given is first
-**aligned** (then, if that does not settle it, the best other reading): the refiner's gradient route
-(``RefineConfig.preset("gradient")``, coarse to fine up to ``SIDE`` px) moves each to its nearest cost minimum,
-and the rule is applied to the aligned costs. A prior that is merely off lands on the map's own minimum (snow:
-0.27 from every prior up to 20 cm / 5 deg; lego 0.16-0.23 from 3-10 cm), while a wrong frame or convention
-stays unrelated (snow 0.47-0.71, lego 0.78-1.0). Lego priors 20 cm / 5 deg off are beyond the route's reach:
-"disagree", as before.
+**aligned** (then, until one settles it, the other readings in order of raw cost): the refiner's gradient route
+(``RefineConfig.preset("gradient")``, coarse to fine up to ``ALIGN_SIDE`` px) moves each to its nearest cost
+minimum, scored again at ``SIDE`` px, and the rule is applied to the aligned costs. A prior that is merely off
+lands on the map's own minimum (snow: 0.27 from every prior up to 20 cm / 5 deg; lego 0.16-0.23 from 3-10 cm),
+while a wrong frame or convention stays unrelated (snow 0.47-0.71, lego 0.78-1.0). Lego priors 20 cm / 5 deg
+off are beyond the route's reach: "disagree", as before.
 """
 
 from __future__ import annotations
@@ -146,8 +146,9 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
         poses: name -> world-to-camera pose (None entries are skipped). image_of: name -> image path.
         intrinsics: (name, width, height) -> Camera. sample: queries to use (evenly spaced, deterministic).
         figures: write query | rendering side by side per sampled query here.
-        align: when the raw costs are not conclusive, align the pose as given and the best other reading to
-            their nearest cost minimum first (see the module docstring); False: raw costs only.
+        align: when the raw costs are not conclusive, align the pose as given (then the other readings in order
+            of raw cost, until one settles it) to its nearest cost minimum first (see the module docstring);
+            False: raw costs only.
     """
     import kornia
     import torch
@@ -219,5 +220,5 @@ def _aligned_costs(scene: GaussianScene, poses: Mapping[str, Pose], names: list[
         moved = res.search_pose if res.error is None and res.search_pose is not None else start
         scorer.set_query(cam.with_max_side(SIDE), img)
         out.append(float(scorer([moved])[0]))
-        logger.debug("check: %s aligned from %.3f to %.3f", name, float(scorer([start])[0]), out[-1])
+        logger.debug("check: %s aligned (%s) to cs cost %.3f", name, res.rejected or "accepted", out[-1])
     return out

@@ -1,15 +1,19 @@
 """Trust benchmark: is a returned pose ever worse than its prior, and does the confidence say which to trust?
 
-Usage: python benchmarks/trust.py [--scenes snow room donut] [--queries 6] [--out benchmarks/trust.md]
+Usage: python benchmarks/trust.py [--scenes snow lego room donut] [--queries 6] [--draws 3]
+    [--out benchmarks/trust.md]
 
-Scenes (real photographs first):
+Scenes (real pixels first):
 - ``snow``: 6 real phone photos against an imperfect 3DGS (``../shared/data/snow``);
+- ``lego``: held-out Blender renders (pixels no 3DGS made) against a 3DGS fitted to other views
+  (``../shared/data/lego``; the first ``--queries`` of its 15);
 - ``room``: the embedded demo room, photo-degraded renderings (``hgsloc demo``'s queries);
 - ``donut``: ``../shared/data/scenes/donut.ply``, photo-degraded renderings (a small object at ~0.35 units).
 
 Errors are in **7-Scenes-equivalent centimetres**: metres x 100 on the room (a metric scene), elsewhere the
 centre error scaled by 2 m over the query's median depth (7-Scenes' typical depth), so "1 cm" means the same
 image motion on every scene. Priors:
+- ``truth``: the true pose itself (a good cost leaves it there; "worse" = moved > 1 cm or > 0.5 deg away);
 - ``D cm / R deg``: exactly D equivalent cm and R degrees in random directions, from small to beyond the
   search's reach (1 / 0.5, 3 / 1, 10 / 3, 30 / 10);
 - ``1 cm / 0.5 deg, region 2 cm / 1 deg``: the 1 cm priors with the trust region set from the localizer's
@@ -74,6 +78,16 @@ def snow_case(n):
             [200.0 / q[3] for q in queries], bg)
 
 
+def lego_case(n):
+    loaded = load_dataset("lego")
+    if loaded is None:
+        return None
+    cam, scene, queries, bg = loaded
+    queries = queries[:n]
+    return ("lego (held-out renders, real pixels)", scene, cam, [q[1] for q in queries], [q[2] for q in queries],
+            [200.0 / q[3] for q in queries], bg)
+
+
 def synthetic_case(label, scene, cam, gts, metric: bool):
     imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
     scale = [100.0 if metric else 200.0 / median_depth(scene, cam, g) for g in gts]
@@ -104,7 +118,7 @@ def priors(gts, scale, inliers: dict | None = None, draws: int = 1) -> dict:
     """protocol name -> priors, query k's at positions k, k + n, ...: one per query, ``draws`` per query for the
     localizer-shaped rows; ``inliers``, when given, gets protocol name -> the localizer's inlier count of each
     prior's error (localizer-shaped rows)."""
-    out = {}
+    out = {"truth": list(gts)}
     for cm, deg in LEVELS:
         rng = np.random.default_rng(int(10 * cm + deg))
         out[f"{cm:g} cm / {deg:g} deg"] = [se3_noise(g, deg, cm / s, rng) for g, s in zip(gts, scale)]
@@ -201,7 +215,7 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=["snow", "room", "donut"])
+    ap.add_argument("--scenes", nargs="+", default=["snow", "lego", "room", "donut"])
     ap.add_argument("--queries", type=int, default=6, help="queries per scene (snow has 6)")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--draws", type=int, default=3, help="priors per query in the localizer-shaped rows")
@@ -209,7 +223,7 @@ def main() -> None:
     args = ap.parse_args()
     hp.init()
     config = hp.RefineConfig.preset(args.preset)
-    makers = {"snow": snow_case, "room": room_case, "donut": donut_case}
+    makers = {"snow": snow_case, "lego": lego_case, "room": room_case, "donut": donut_case}
     t_start = time.time()
     lines = ["# Trust benchmark (`benchmarks/trust.py`)",
              f"\nPreset {args.preset}; backend {hp.current_arch()}; errors in 7-Scenes-equivalent cm / deg; "

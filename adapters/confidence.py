@@ -14,8 +14,9 @@ region of most counts: on the real snow photos with 18 priors drawn from ACE's 7
 (``benchmarks/trust.py``) the outcome equals the default region's (one query worse, that one); in another draw
 of 18 (seeds 300-302) the region kept it (0 worse instead of 1), at margins 1.0 and 1.5, not 2.0.
 
-Errors scale with the scene: the shift is given for 7-Scenes' typical depth (2 m) and scaled by the query's
-median depth over 2 m, so the same image motion is allowed in any map's units.
+Errors scale with the scene: the shift is measured at 7-Scenes' typical depth (2 m) and given as a fraction of
+the query's median depth (``Refiner.refine``'s ``max_shift_depth``, which the refiner multiplies by the depth it
+computes anyway), so the same image motion is allowed in any map's units.
 """
 
 from __future__ import annotations
@@ -37,20 +38,17 @@ REFERENCE_DEPTH = 2.0
 INLIER_COLUMN = {"ace": 10}
 
 
-def inlier_region(inliers: float, depth: float) -> tuple[float, float] | None:
+def inlier_region(inliers: float) -> tuple[float, float] | None:
     """The trust region for a pose with ``inliers`` RANSAC inliers.
 
-    Args:
-        inliers: the localizer's inlier count. depth: the query's median scene depth (scene units).
-
     Returns:
-        (max_shift in scene units, max_rotation_deg), or None when the count or the depth is unusable (not
-        finite, negative; the default region applies).
+        (max_shift_depth: the camera-shift bound as a fraction of the query's median depth, max_rotation_deg),
+        or None when the count is unusable (not finite, negative; the default region applies).
     """
-    if not (math.isfinite(inliers) and inliers >= 0 and math.isfinite(depth) and depth > 0):
+    if not (math.isfinite(inliers) and inliers >= 0):
         return None
     i = bisect.bisect_right(INLIER_EDGES, inliers) - 1
-    return (REGION_MARGIN * Q99_CM[i] / 100.0 * depth / REFERENCE_DEPTH, REGION_MARGIN * Q99_DEG[i])
+    return (REGION_MARGIN * Q99_CM[i] / 100.0 / REFERENCE_DEPTH, REGION_MARGIN * Q99_DEG[i])
 
 
 def record_inliers(dialect: str, tokens: list[str]) -> float | None:

@@ -68,24 +68,22 @@ REGIONS = {"1 cm / 0.5 deg, region 2 cm / 1 deg": ("1 cm / 0.5 deg", 2.0, 1.0)}
 INLIER_ROWS = {"ACE-shaped, region from ACE's inliers": "ACE-shaped"}
 
 
-def snow_case(n):
-    loaded = load_dataset("snow")
+def data_case(name: str, label: str, n: int):
+    """A ../shared/data set with real pixels (snow, lego): its first n queries; None when absent."""
+    loaded = load_dataset(name)
     if loaded is None:
         return None
     cam, scene, queries, bg = loaded
     queries = queries[:n]
-    return ("snow (real photos)", scene, cam, [q[1] for q in queries], [q[2] for q in queries],
-            [200.0 / q[3] for q in queries], bg)
+    return (label, scene, cam, [q[1] for q in queries], [q[2] for q in queries], [200.0 / q[3] for q in queries], bg)
+
+
+def snow_case(n):
+    return data_case("snow", "snow (real photos)", n)
 
 
 def lego_case(n):
-    loaded = load_dataset("lego")
-    if loaded is None:
-        return None
-    cam, scene, queries, bg = loaded
-    queries = queries[:n]
-    return ("lego (held-out renders, real pixels)", scene, cam, [q[1] for q in queries], [q[2] for q in queries],
-            [200.0 / q[3] for q in queries], bg)
+    return data_case("lego", "lego (held-out renders, real pixels)", n)
 
 
 def synthetic_case(label, scene, cam, gts, metric: bool):
@@ -177,8 +175,8 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
                 by = hp.HGSLocPlugin(scene, refiner.config.replace(max_shift=cm / scale[k], max_rotation_deg=deg))
             region = {}
             if name in INLIER_ROWS:  # as the pipeline sets it for a record of an ACE file
-                shift_rot = inlier_region(counts[INLIER_ROWS[name]][j], median_depth(scene, cam, prior))
-                region = dict(zip(("max_shift", "max_rotation_deg"), shift_rot or (None, None)))
+                shift_rot = inlier_region(counts[INLIER_ROWS[name]][j])
+                region = dict(zip(("max_shift_depth", "max_rotation_deg"), shift_rot or (None, None)))
             r = by.refine(img, cam, prior, name=str(k), **region)
             for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
                 t, a = p.errors_to(gt)

@@ -19,7 +19,7 @@ logger = logging.getLogger("hgsloc_plugin")
 @dataclass
 class Query:
     """One query: its position in the batch, name, image (path or array), camera, coarse pose and, optionally,
-    its own trust region (``Refiner.refine``'s ``max_shift`` / ``max_rotation_deg``)."""
+    its own trust region (``Refiner.refine``'s ``max_shift`` / ``max_rotation_deg`` / ``max_shift_depth``)."""
 
     index: int
     name: str | None
@@ -28,23 +28,25 @@ class Query:
     coarse_pose: object
     max_shift: float | None = None
     max_rotation_deg: float | None = None
+    max_shift_depth: float | None = None
 
     def refine_with(self, refiner: Refiner) -> RefineResult:
         """``refiner.try_refine`` on this query."""
         return refiner.try_refine(self.image, self.camera, self.coarse_pose, name=self.name,
-                                  max_shift=self.max_shift, max_rotation_deg=self.max_rotation_deg)
+                                  max_shift=self.max_shift, max_rotation_deg=self.max_rotation_deg,
+                                  max_shift_depth=self.max_shift_depth)
 
 
 def as_queries(items: Iterable) -> list[Query]:
     """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys (and optionally
-    ``max_shift`` / ``max_rotation_deg``)."""
+    ``max_shift`` / ``max_rotation_deg`` / ``max_shift_depth``)."""
     out = []
     for k, it in enumerate(items):
         if isinstance(it, Query):
             out.append(it)
         elif isinstance(it, dict):
             out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"], it.get("max_shift"),
-                             it.get("max_rotation_deg")))
+                             it.get("max_rotation_deg"), it.get("max_shift_depth")))
         else:
             image, camera, coarse, *rest = it
             out.append(Query(k, rest[0] if rest else None, image, camera, coarse))

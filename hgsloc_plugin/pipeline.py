@@ -23,7 +23,6 @@ from .image import load_image
 from .plugin import HGSLocPlugin
 from .pose import Pose
 from .refine import RefineConfig, RefineResult
-from .refine.refiner import median_depth
 from .scene import GaussianScene
 
 logger = logging.getLogger("hgsloc_plugin")
@@ -109,9 +108,9 @@ def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose
 
 
 def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera],
-             region_of: Callable[[str, Camera, Pose], tuple[float, float] | None]) -> list[Query]:
-    """Queries to refine: name, image path, intrinsics, prior and its own trust region (``region_of``; None =
-    the refiner's). Unusable ones are recorded as failed at once."""
+             region_of: Callable[[str], dict]) -> list[Query]:
+    """Queries to refine: name, image path, intrinsics, prior and its own trust region (``region_of``: the
+    ``Query`` fields to set; empty = the refiner's). Unusable ones are recorded as failed at once."""
     from PIL import Image
 
     out = []
@@ -124,27 +123,29 @@ def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[st
             img_path = resolve_image(name, images)
             with Image.open(img_path) as im:
                 w, h = im.size
-            cam = intrinsics(name, w, h)
-            region = region_of(name, cam, coarse) or (None, None)
-            out.append(Query(len(out), name, str(img_path), cam, coarse, *region))
+            out.append(Query(len(out), name, str(img_path), intrinsics(name, w, h), coarse, **region_of(name)))
         except Exception as exc:  # one bad query never stops the run
             logger.warning("%s: %s", name, exc)
             run.record(name, error=f"{type(exc).__name__}: {exc}")
     return out
 
 
-def _region_of(pf: PoseFile, refiner: HGSLocPlugin) -> Callable[[str, Camera, Pose], tuple | None]:
-    """name, camera, prior -> (max_shift, max_rotation_deg) from the record's inlier count, None without one;
-    a bound set in the refiner's config stays (it is passed as None)."""
-    cfg = refiner.config
+def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], dict]:
+    """name -> the ``Query`` trust-region fields from the record's inlier count ({} without one); a bound set in
+    the refiner's config stays (it is not passed). The shift is depth-relative: the refiner scales it by the
+    median depth it computes for the query anyway."""
 
-    def region_of(name: str, camera: Camera, prior: Pose):
+    def region_of(name: str) -> dict:
         inliers = record_inliers(pf.dialect, pf.record(name).tokens)
-        region = None if inliers is None else inlier_region(inliers, median_depth(refiner.scene, camera, prior))
+        region = None if inliers is None else inlier_region(inliers)
         if region is None:
-            return None
-        return (None if cfg.max_shift is not None else region[0],
-                None if cfg.max_rotation_deg is not None else region[1])
+            return {}
+        out = {}
+        if cfg.max_shift is None:
+            out["max_shift_depth"] = region[0]
+        if cfg.max_rotation_deg is None:
+            out["max_rotation_deg"] = region[1]
+        return out
 
     return region_of
 
@@ -186,7 +187,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
     run = _Run(pf, output, report, refined)
     names = list(pf)[: limit if limit is not None else None]
     queries = _queries(run, [n for n in names if n not in done], images, intrinsics,
-                       _region_of(pf, refiner) if inlier_region else lambda *_: None)
+                       _region_of(pf, refiner.config) if inlier_region else lambda _: {})
     count = 0
 
     def on_result(q: Query, res: RefineResult) -> None:

@@ -49,14 +49,13 @@ def test_inlier_table_is_the_99th_percentile_of_real_ace_and_glace_errors():
     assert all(a >= b - 0.02 for a, b in zip(Q99_DEG, Q99_DEG[1:]))
 
 
-def test_inlier_region_scales_with_depth_and_refuses_unusable_counts():
-    shift, rot = inlier_region(3700.0, 2.0)
-    assert shift == pytest.approx(REGION_MARGIN * Q99_CM[6] / 100) and rot == pytest.approx(REGION_MARGIN * Q99_DEG[6])
-    assert inlier_region(3700.0, 4.5)[0] == pytest.approx(shift * 4.5 / 2.0)  # same image motion, other units
-    assert inlier_region(500.0, 2.0)[0] > 10 * shift
+def test_inlier_region_is_depth_relative_and_refuses_unusable_counts():
+    shift, rot = inlier_region(3700.0)  # a fraction of the median depth: at 2 m, the table's cm
+    assert 2.0 * shift == pytest.approx(REGION_MARGIN * Q99_CM[6] / 100)
+    assert rot == pytest.approx(REGION_MARGIN * Q99_DEG[6])
+    assert inlier_region(500.0)[0] > 10 * shift
     for bad in (math.nan, -1.0, math.inf):
-        assert inlier_region(bad, 2.0) is None
-    assert inlier_region(3700.0, 0.0) is None
+        assert inlier_region(bad) is None
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +76,12 @@ def test_per_call_region_equals_the_configured_one_and_overrides_it(room):
     assert per_call.pose == by_config.pose and per_call.search_pose == by_config.search_pose
     assert (per_call.max_shift, per_call.max_rotation_deg) == (0.05, 1.5)
     assert json.loads(json.dumps(per_call.to_dict()))["max_shift"] == 0.05
+    # a depth-relative shift bound is scaled by the query's median depth; an absolute one wins over it
+    depth = median_depth(scene, cam, prior)
+    rel = hp.HGSLocPlugin(scene).refine(img, cam, prior, max_shift_depth=0.05 / depth, max_rotation_deg=1.5)
+    assert rel.max_shift == pytest.approx(0.05) and rel.pose == by_config.pose
+    both = hp.HGSLocPlugin(scene).refine(img, cam, prior, max_shift=0.05, max_shift_depth=1.0, max_rotation_deg=1.5)
+    assert both.max_shift == 0.05 and both.pose == by_config.pose
     # a region too small for the prior's error: the search stops at its edge and the prior is kept
     tight = hp.HGSLocPlugin(scene).refine(img, cam, prior, max_shift=0.003, max_rotation_deg=0.1)
     assert not tight.accepted and tight.pose == prior
@@ -103,11 +108,12 @@ def test_ace_file_inlier_counts_set_each_query_region(tmp_path, room):
 
     q = run("a.txt")
     for name, inl in (("q0.png", 3700.0), ("q1.png", 800.0)):
-        shift, rot = inlier_region(inl, depth)
-        assert q[name]["max_shift"] == pytest.approx(shift) and q[name]["max_rotation_deg"] == pytest.approx(rot)
+        shift, rot = inlier_region(inl)
+        assert q[name]["max_shift"] == pytest.approx(shift * depth)
+        assert q[name]["max_rotation_deg"] == pytest.approx(rot)
     assert q["q0.png"]["max_shift"] < q["q1.png"]["max_shift"] / 10
     off = run("b.txt", inlier_region=False)
     assert off["q0.png"]["max_shift"] == off["q1.png"]["max_shift"] > q["q0.png"]["max_shift"]
     explicit = run("c.txt", config=hp.RefineConfig(max_shift=0.2))
     assert explicit["q0.png"]["max_shift"] == 0.2
-    assert explicit["q0.png"]["max_rotation_deg"] == pytest.approx(inlier_region(3700.0, depth)[1])
+    assert explicit["q0.png"]["max_rotation_deg"] == pytest.approx(inlier_region(3700.0)[1])

@@ -184,7 +184,7 @@ class Refiner:
         self.renderer = get_renderer(scene, self.raster)
 
     def _plan(self, camera: Camera, coarse: Pose, max_shift: float | None = None,
-              max_rotation_deg: float | None = None) -> _Plan:
+              max_rotation_deg: float | None = None, max_shift_depth: float | None = None) -> _Plan:
         cfg = self.config
         cam_final = camera.with_max_side(cfg.score_max_side)
         coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
@@ -202,12 +202,15 @@ class Refiner:
             auto_t, auto_r = 0.5 * depth, 10.0
         else:
             auto_t, auto_r = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
+        if max_shift is None and max_shift_depth is not None:
+            max_shift = max_shift_depth * depth
         max_t = next(v for v in (max_shift, cfg.max_shift, auto_t) if v is not None)
         max_r = next(v for v in (max_rotation_deg, cfg.max_rotation_deg, auto_r) if v is not None)
         return _Plan(cam_final, cam_coarse, cam_polish, levels, depth, max_t, max_r)
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
-               max_shift: float | None = None, max_rotation_deg: float | None = None) -> RefineResult:
+               max_shift: float | None = None, max_rotation_deg: float | None = None,
+               max_shift_depth: float | None = None) -> RefineResult:
         """Refine one query.
 
         Args:
@@ -217,6 +220,8 @@ class Refiner:
             max_shift / max_rotation_deg: this query's trust region (camera-centre shift in scene units, rotation
                 in degrees), e.g. from the localizer's confidence in it (``adapters/confidence.py``); each
                 overrides ``RefineConfig``'s when given.
+            max_shift_depth: the shift bound as a fraction of the query's median depth (the one the search's
+                steps are made from), used when ``max_shift`` is not given.
 
         Returns:
             A :class:`RefineResult`; its pose is the search's only when that passes the acceptance rule
@@ -228,12 +233,13 @@ class Refiner:
             raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
         if not isinstance(coarse_pose, Pose):
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
-        for key, v in (("max_shift", max_shift), ("max_rotation_deg", max_rotation_deg)):
+        for key, v in (("max_shift", max_shift), ("max_rotation_deg", max_rotation_deg),
+                       ("max_shift_depth", max_shift_depth)):
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{key} must be a positive number, got {v}")
         img = load_image(image, name=name or "image", background=cfg.background)
         img = check_size(img, camera, cfg.resize_query, name or "image")
-        plan = self._plan(camera, coarse_pose, max_shift, max_rotation_deg)
+        plan = self._plan(camera, coarse_pose, max_shift, max_rotation_deg, max_shift_depth)
         renderer = self._working_set(plan, coarse_pose)
         scorer = Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha)
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n,
@@ -337,12 +343,13 @@ class Refiner:
         return pose
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None,
-                   max_shift: float | None = None, max_rotation_deg: float | None = None) -> RefineResult:
+                   max_shift: float | None = None, max_rotation_deg: float | None = None,
+                   max_shift_depth: float | None = None) -> RefineResult:
         """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""
         t0 = time.perf_counter()
         try:
             return self.refine(image, camera, coarse_pose, name=name, max_shift=max_shift,
-                               max_rotation_deg=max_rotation_deg)
+                               max_rotation_deg=max_rotation_deg, max_shift_depth=max_shift_depth)
         except Exception as exc:  # recorded per query; a batch goes on
             logger.warning("query %s failed: %s", name, exc)
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,

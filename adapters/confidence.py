@@ -14,6 +14,14 @@ region of most counts: on the real snow photos with 18 priors drawn from ACE's 7
 (``benchmarks/trust.py``) the outcome equals the default region's (one query worse, that one); in another draw
 of 18 (seeds 300-302) the region kept it (0 worse instead of 1), at margins 1.0 and 1.5, not 2.0.
 
+:func:`inlier_prior_error` gives the bin's median error, the prior's expected error (``Refiner.refine``'s
+``prior_error``): a refined pose whose own uncertainty exceeds it in translation and in rotation is less precise
+than the prior, which is kept. This is what stops an imperfect map's drift on confident poses: on the real snow
+photos with the 18 ACE-shaped priors and their counts (``benchmarks/trust.py``, row "ACE-shaped, ACE's
+inliers") 0 made worse instead of 1 (recall 5/2/1 cm 100/94/78, the priors', instead of 100/89/83), on lego 1
+instead of 2 (recall at 1 cm 67 instead of 44), the room unchanged. :func:`inlier_trust` gives both as
+``Refiner.refine`` keywords.
+
 Errors scale with the scene: the shift is measured at 7-Scenes' typical depth (2 m) and given as a fraction of
 the query's median depth (``Refiner.refine``'s ``max_shift_depth``, which the refiner multiplies by the depth it
 computes anyway), so the same image motion is allowed in any map's units.
@@ -29,6 +37,9 @@ INLIER_EDGES = (0, 1000, 1500, 2000, 2500, 3000, 3500, 4000)
 #: 99th percentile per bin of ACE + GLACE 7-Scenes errors against the SfM pGT: camera centre (cm), rotation (deg)
 Q99_CM = (64.71, 12.00, 9.06, 5.15, 3.27, 3.28, 2.76, 2.42)
 Q99_DEG = (7.58, 3.45, 2.38, 1.69, 1.02, 1.04, 0.86, 0.59)
+#: median per bin of the same errors: camera centre (cm), rotation (deg)
+MEDIAN_CM = (3.80, 2.20, 1.64, 1.23, 0.91, 0.89, 0.71, 0.62)
+MEDIAN_DEG = (1.17, 0.56, 0.49, 0.39, 0.31, 0.27, 0.20, 0.16)
 #: the region is this multiple of the bin's 99th percentile (wide enough that a prior within its bin's 99th
 #: percentile is corrected without reaching the region's edge, where the acceptance rule refuses it)
 REGION_MARGIN = 1.5
@@ -45,10 +56,36 @@ def inlier_region(inliers: float) -> tuple[float, float] | None:
         (max_shift_depth: the camera-shift bound as a fraction of the query's median depth, max_rotation_deg),
         or None when the count is unusable (not finite, negative; the default region applies).
     """
+    i = _bin(inliers)
+    return None if i is None else (REGION_MARGIN * Q99_CM[i] / 100.0 / REFERENCE_DEPTH, REGION_MARGIN * Q99_DEG[i])
+
+
+def inlier_prior_error(inliers: float) -> tuple[float, float] | None:
+    """The expected (median) error of a pose with ``inliers`` RANSAC inliers.
+
+    Returns:
+        (camera-centre error as a fraction of the query's median depth, rotation error in degrees), or None
+        when the count is unusable.
+    """
+    i = _bin(inliers)
+    return None if i is None else (MEDIAN_CM[i] / 100.0 / REFERENCE_DEPTH, MEDIAN_DEG[i])
+
+
+def inlier_trust(inliers: float) -> dict:
+    """``Refiner.refine`` keywords for a pose with ``inliers`` RANSAC inliers: its trust region
+    (``max_shift_depth``, ``max_rotation_deg``) and expected error (``prior_error_depth``, ``prior_error_deg``);
+    {} when the count is unusable."""
+    region, error = inlier_region(inliers), inlier_prior_error(inliers)
+    if region is None or error is None:
+        return {}
+    return dict(zip(("max_shift_depth", "max_rotation_deg", "prior_error_depth", "prior_error_deg"),
+                    region + error))
+
+
+def _bin(inliers: float) -> int | None:
     if not (math.isfinite(inliers) and inliers >= 0):
         return None
-    i = bisect.bisect_right(INLIER_EDGES, inliers) - 1
-    return (REGION_MARGIN * Q99_CM[i] / 100.0 / REFERENCE_DEPTH, REGION_MARGIN * Q99_DEG[i])
+    return bisect.bisect_right(INLIER_EDGES, inliers) - 1
 
 
 def record_inliers(dialect: str, tokens: list[str]) -> float | None:

@@ -18,11 +18,17 @@ image motion on every scene. Priors:
   search's reach (1 / 0.5, 3 / 1, 10 / 3, 30 / 10);
 - ``1 cm / 0.5 deg, region 2 cm / 1 deg``: the 1 cm priors with the trust region set from the localizer's
   expected error (``--max-shift`` / ``--max-rotation``, here twice it) instead of from the coarsest step;
+- ``1 cm / 0.5 deg, error 1 cm / 0.5 deg declared``: the 1 cm priors with their error declared
+  (``--prior-error`` / ``--prior-rotation-error``): a refined pose whose uncertainty exceeds it in both is not
+  returned;
 - ``ACE-shaped`` / ``Marepo-shaped``: the camera-frame errors of the real ACE / Marepo estimates of 7-Scenes
   against the SfM pGT (``../shared/data/poses/7scenes``), one drawn per query, so heavy tails included;
-- ``ACE-shaped, region from ACE's inliers``: the same priors, each with the inlier count ACE wrote for the
-  estimate its error was drawn from, which sets the query's trust region (``adapters/confidence.py``), as
-  ``hgsloc refine`` does for an ACE file.
+- ``ACE-shaped, ACE's inliers``: the same priors, each with the inlier count ACE wrote for the estimate its
+  error was drawn from, which sets the query's trust region and expected error (``adapters/confidence.py``:
+  1.5x the 99th percentile and the median of ACE + GLACE errors at that count), as ``hgsloc refine`` does for
+  an ACE file;
+- ``Marepo-shaped, error declared``: the Marepo-shaped priors with Marepo's median 7-Scenes error declared (a
+  localizer without a per-pose confidence: one figure for all its poses).
 
 Per row: queries improved / unchanged / made worse (worse: the returned pose is > 1 cm or > 0.5 deg further from
 the truth than the prior), recall at 5 cm 5 deg / 2 cm 2 deg / 1 cm 1 deg before and after, and how well the
@@ -50,7 +56,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import DATA, load_dataset, localizer_errors, shaped_prior  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.adapters.confidence import inlier_region  # noqa: E402
+from hgsloc_plugin.adapters.confidence import inlier_trust  # noqa: E402
 from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
@@ -60,12 +66,17 @@ from hgsloc_plugin.refine.refiner import median_depth  # noqa: E402
 LEVELS = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0), (30.0, 10.0))
 WORSE_CM, WORSE_DEG = 1.0, 0.5
 RECALLS = ((5.0, 5.0), (2.0, 2.0), (1.0, 1.0))
-# rows with a trust region set from the localizer's expected error (--max-shift / --max-rotation, in equivalent
-# cm per query): row name -> (the priors' row, shift cm, rotation deg)
-REGIONS = {"1 cm / 0.5 deg, region 2 cm / 1 deg": ("1 cm / 0.5 deg", 2.0, 1.0)}
-# rows whose priors carry the localizer's inlier count, which sets each query's region (adapters/confidence.py,
-# what `hgsloc refine` does with ACE files): row name -> the priors' row
-INLIER_ROWS = {"ACE-shaped, region from ACE's inliers": "ACE-shaped"}
+# rows with what a user declares about the priors (--max-shift / --max-rotation / --prior-error /
+# --prior-rotation-error): row name -> (the priors' row, Refiner.refine keywords with lengths in equivalent cm;
+# "median" = the localizer's median 7-Scenes error, measured from the files)
+DECLARED = {"1 cm / 0.5 deg, region 2 cm / 1 deg": ("1 cm / 0.5 deg", {"max_shift": 2.0, "max_rotation_deg": 1.0}),
+            "1 cm / 0.5 deg, error 1 cm / 0.5 deg declared": ("1 cm / 0.5 deg",
+                                                             {"prior_error": 1.0, "prior_error_deg": 0.5}),
+            "Marepo-shaped, error declared": ("Marepo-shaped", {"prior_error": "median", "prior_error_deg": "median"})}
+LENGTHS = ("max_shift", "prior_error")
+# rows whose priors carry the localizer's inlier count, which sets each query's region and expected error
+# (adapters/confidence.py, what `hgsloc refine` does with ACE files): row name -> the priors' row
+INLIER_ROWS = {"ACE-shaped, ACE's inliers": "ACE-shaped"}
 
 
 def data_case(name: str, label: str, n: int):
@@ -112,10 +123,10 @@ def donut_case(n):
                           hp.Camera.from_fov(320, 240, 50.0), gts, metric=False)
 
 
-def priors(gts, scale, inliers: dict | None = None, draws: int = 1) -> dict:
+def priors(gts, scale, inliers: dict | None = None, draws: int = 1, medians: dict | None = None) -> dict:
     """protocol name -> priors, query k's at positions k, k + n, ...: one per query, ``draws`` per query for the
     localizer-shaped rows; ``inliers``, when given, gets protocol name -> the localizer's inlier count of each
-    prior's error (localizer-shaped rows)."""
+    prior's error (localizer-shaped rows); ``medians``: protocol name -> the localizer's median error (cm, deg)."""
     out = {"truth": list(gts)}
     for cm, deg in LEVELS:
         rng = np.random.default_rng(int(10 * cm + deg))
@@ -131,6 +142,9 @@ def priors(gts, scale, inliers: dict | None = None, draws: int = 1) -> dict:
                           for j, i in enumerate(picks)]
             if inliers is not None:
                 inliers[label] = [counts[i] for i in picks]
+            if medians is not None:
+                e = np.array([err.errors_to(hp.Pose.identity()) for err in errs])  # centre (m at 2 m), deg
+                medians[label] = (100.0 * float(np.median(e[:, 0])), float(np.median(e[:, 1])))
     else:
         print("skipping localizer-shaped priors: ../shared/data/poses/7scenes not found", file=sys.stderr)
     return out
@@ -160,8 +174,9 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     counts: dict = {}
-    rows = priors(gts, scale, counts, draws)
-    rows.update({name: rows[src] for name, (src, _, _) in REGIONS.items()})
+    medians: dict = {}
+    rows = priors(gts, scale, counts, draws, medians)
+    rows.update({name: rows[src] for name, (src, _) in DECLARED.items() if src in rows})
     rows.update({name: rows[src] for name, src in INLIER_ROWS.items() if src in rows})
     for name, ps in rows.items():
         t0 = time.perf_counter()
@@ -169,15 +184,15 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
         for j, prior in enumerate(ps):
             k = j % len(gts)
             img, gt = imgs[k], gts[k]
-            by = refiner
-            if name in REGIONS:  # the region in scene units for this query (scale: equivalent cm per unit)
-                _, cm, deg = REGIONS[name]
-                by = hp.HGSLocPlugin(scene, refiner.config.replace(max_shift=cm / scale[k], max_rotation_deg=deg))
-            region = {}
-            if name in INLIER_ROWS:  # as the pipeline sets it for a record of an ACE file
-                shift_rot = inlier_region(counts[INLIER_ROWS[name]][j])
-                region = dict(zip(("max_shift_depth", "max_rotation_deg"), shift_rot or (None, None)))
-            r = by.refine(img, cam, prior, name=str(k), **region)
+            per_query = {}
+            if name in DECLARED:  # lengths in scene units for this query (scale: equivalent cm per unit)
+                src, declared = DECLARED[name]
+                for key, v in declared.items():
+                    v = medians[src][0 if key in LENGTHS else 1] if v == "median" else v
+                    per_query[key] = v / scale[k] if key in LENGTHS else v
+            if name in INLIER_ROWS:  # as the pipeline sets them for a record of an ACE file
+                per_query = inlier_trust(counts[INLIER_ROWS[name]][j])
+            r = refiner.refine(img, cam, prior, name=str(k), **per_query)
             for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
                 t, a = p.errors_to(gt)
                 lst.append((t * scale[k], a))

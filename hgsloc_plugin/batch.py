@@ -11,7 +11,7 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from .refine import Refiner, RefineResult
+from .refine import PER_QUERY, Refiner, RefineResult
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -19,7 +19,7 @@ logger = logging.getLogger("hgsloc_plugin")
 @dataclass
 class Query:
     """One query: its position in the batch, name, image (path or array), camera, coarse pose and, optionally,
-    its own trust region (``Refiner.refine``'s ``max_shift`` / ``max_rotation_deg`` / ``max_shift_depth``)."""
+    its own trust region and prior error (``Refiner.refine``'s keywords of the same names, ``PER_QUERY``)."""
 
     index: int
     name: str | None
@@ -29,24 +29,26 @@ class Query:
     max_shift: float | None = None
     max_rotation_deg: float | None = None
     max_shift_depth: float | None = None
+    prior_error: float | None = None
+    prior_error_deg: float | None = None
+    prior_error_depth: float | None = None
 
     def refine_with(self, refiner: Refiner) -> RefineResult:
         """``refiner.try_refine`` on this query."""
         return refiner.try_refine(self.image, self.camera, self.coarse_pose, name=self.name,
-                                  max_shift=self.max_shift, max_rotation_deg=self.max_rotation_deg,
-                                  max_shift_depth=self.max_shift_depth)
+                                  **{k: getattr(self, k) for k in PER_QUERY})
 
 
 def as_queries(items: Iterable) -> list[Query]:
     """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys (and optionally
-    ``max_shift`` / ``max_rotation_deg`` / ``max_shift_depth``)."""
+    the per-query keywords of ``Refiner.refine``: ``max_shift``, ``max_rotation_deg``, ``prior_error``, ...)."""
     out = []
     for k, it in enumerate(items):
         if isinstance(it, Query):
             out.append(it)
         elif isinstance(it, dict):
-            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"], it.get("max_shift"),
-                             it.get("max_rotation_deg"), it.get("max_shift_depth")))
+            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"],
+                             **{key: it.get(key) for key in PER_QUERY}))
         else:
             image, camera, coarse, *rest = it
             out.append(Query(k, rest[0] if rest else None, image, camera, coarse))

@@ -45,6 +45,10 @@ def cmd_refine(args) -> int:
         overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
     if args.max_rotation is not None:
         overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
+    if args.prior_error is not None:
+        overrides["prior_error"] = parse_length(args.prior_error, "--prior-error")
+    if args.prior_rotation_error is not None:
+        overrides["prior_error_deg"] = parse_angle(args.prior_rotation_error, "--prior-rotation-error")
     if args.no_polish:
         overrides["polish"] = False
     config = RefineConfig.preset(args.config, **overrides)
@@ -225,9 +229,14 @@ def build_parser() -> argparse.ArgumentParser:
                                        "(scene units; default: 8 coarsest steps)")
     r.add_argument("--max-rotation", help="trust region: rotation from the prior, e.g. 5deg "
                                           "(default: 8 coarsest steps)")
+    r.add_argument("--prior-error", help="the priors' typical (median) camera-centre error, e.g. 2cm (scene "
+                                         "units): a refined pose less precise than that, in translation and in "
+                                         "rotation, is not returned (default: unknown)")
+    r.add_argument("--prior-rotation-error", help="the priors' typical rotation error, e.g. 1deg (see --prior-error)")
     r.add_argument("--no-inlier-region", action="store_true",
-                   help="do not set each query's trust region from the inlier count of ACE/GLACE pose files "
-                        "(default: a confident pose gets a tight region)")
+                   help="do not set each query's trust region and expected error from the inlier count of "
+                        "ACE/GLACE pose files (default: a confident pose gets a tight region, and is kept when "
+                        "the refined pose is less precise than it)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=int, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

@@ -13,7 +13,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from .adapters.confidence import inlier_region, record_inliers
+from .adapters.confidence import inlier_trust, record_inliers
 from .adapters.names import resolve_image
 from .adapters.posefile import PoseFile, read_poses, write_poses
 from .batch import Query, run_batch
@@ -131,21 +131,18 @@ def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[st
 
 
 def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], dict]:
-    """name -> the ``Query`` trust-region fields from the record's inlier count ({} without one); a bound set in
-    the refiner's config stays (it is not passed). The shift is depth-relative: the refiner scales it by the
-    median depth it computes for the query anyway."""
+    """name -> the ``Query`` fields from the record's inlier count (trust region and expected error,
+    ``adapters/confidence.inlier_trust``; {} without one); a value set in the refiner's config stays (it is not
+    passed). Shift and error are depth-relative: the refiner scales them by the median depth it computes for
+    the query anyway."""
+    # the config field that, when set, wins over each key
+    config_key = {"max_shift_depth": "max_shift", "max_rotation_deg": "max_rotation_deg",
+                  "prior_error_depth": "prior_error", "prior_error_deg": "prior_error_deg"}
 
     def region_of(name: str) -> dict:
         inliers = record_inliers(pf.dialect, pf.record(name).tokens)
-        region = None if inliers is None else inlier_region(inliers)
-        if region is None:
-            return {}
-        out = {}
-        if cfg.max_shift is None:
-            out["max_shift_depth"] = region[0]
-        if cfg.max_rotation_deg is None:
-            out["max_rotation_deg"] = region[1]
-        return out
+        trust = {} if inliers is None else inlier_trust(inliers)
+        return {k: v for k, v in trust.items() if getattr(cfg, config_key[k]) is None}
 
     return region_of
 
@@ -168,7 +165,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
             (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
         inlier_region: in files that hold each pose's RANSAC inlier count (ACE, GLACE), set each query's trust
-            region from it (``adapters/confidence.py``); a region set in ``config`` wins.
+            region and expected prior error from it (``adapters/confidence.py``); values set in ``config`` win.
 
     Returns:
         The report dict (also written as JSON).

@@ -25,7 +25,8 @@ class HGSLocPlugin(Refiner):
 
         Args:
             items: iterable of (image, camera, coarse_pose) or (image, camera, coarse_pose, name) tuples,
-                or dicts with those keys (and optionally each query's ``max_shift`` / ``max_rotation_deg``).
+                or dicts with those keys (and optionally each query's
+                ``max_shift`` / ``max_rotation_deg`` / ``prior_error`` / ``prior_error_deg``: ``Refiner.refine``).
             workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
                 (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
         """

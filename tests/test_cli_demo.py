@@ -12,7 +12,7 @@ import pytest
 
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
-from hgsloc_plugin.adapters.confidence import Q99_DEG, REGION_MARGIN
+from hgsloc_plugin.adapters.confidence import MEDIAN_DEG, Q99_DEG, REGION_MARGIN
 from hgsloc_plugin.cli import main
 from hgsloc_plugin.demo.queries import query_poses
 from hgsloc_plugin.demo.scene import make_room_scene
@@ -54,9 +54,17 @@ def test_cli_refine_evaluate_and_resume(tiny_case, capsys):
     assert len(rep["queries"]) == 2 and rep["dialect"] == "ace"
     # the ACE file's inlier counts (500: a doubtful pose) set each query's rotation bound; --no-inlier-region not
     assert [q["max_rotation_deg"] for q in rep["queries"].values()] == [pytest.approx(REGION_MARGIN * Q99_DEG[0])] * 2
-    assert main(args[:-1] + ["1", "--out", str(d / "plain.txt"), "--no-inlier-region", "--skip-check"]) == 0
-    plain = json.loads((d / "plain.txt.json").read_text())["queries"]
-    assert list(plain.values())[0]["max_rotation_deg"] != pytest.approx(REGION_MARGIN * Q99_DEG[0])
+    assert [q["prior_error_deg"] for q in rep["queries"].values()] == [pytest.approx(MEDIAN_DEG[0])] * 2
+    assert main(args[:-1] + ["1", "--out", str(d / "plain.txt"), "--no-inlier-region", "--skip-check",
+                             "--prior-error", "5cm", "--prior-rotation-error", "2deg"]) == 0
+    plain = json.loads((d / "plain.txt.json").read_text())
+    q_plain = list(plain["queries"].values())[0]
+    assert q_plain["max_rotation_deg"] != pytest.approx(REGION_MARGIN * Q99_DEG[0])
+    assert (q_plain["prior_error"], q_plain["prior_error_deg"]) == (pytest.approx(0.05), 2.0)
+    assert (plain["config"]["prior_error"], plain["config"]["prior_error_deg"]) == (pytest.approx(0.05), 2.0)
+    capsys.readouterr()
+    assert main(args[:-1] + ["1", "--out", str(d / "bad.txt"), "--prior-error", "far"]) == 2
+    assert "--prior-error" in capsys.readouterr().err and not (d / "bad.txt").exists()
     assert read_poses(out).dialect == "ace" and len(read_poses(out)) == 3
     # resume: the third query is refined, the first two are not redone, no duplicate lines
     args_all = [a for a in args if a not in ("--limit", "2")]

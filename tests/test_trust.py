@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
+from hgsloc_plugin.adapters.confidence import inlier_prior_error, inlier_trust
 from hgsloc_plugin.cli import parse_angle, parse_length
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
@@ -142,7 +143,7 @@ def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
     0.5 deg prior the default region (8 coarsest steps) lets the refinement go there, sharp and significant: worse
     than the prior, and no image cost can tell. A trust region set from the localizer's expected error (2 cm-eq /
     1 deg, ``max_shift`` / ``max_rotation_deg``) keeps that prior and still refines query 1 (benchmarks/trust.py,
-    row "region 2 cm / 1 deg": 0 worse)."""
+    row "region 2 cm / 1 deg": 0 worse); so does the expected error of a confident ACE pose."""
     scene, cam, queries = _snow()
     rng = np.random.default_rng(10)  # benchmarks/trust.py's 1 cm / 0.5 deg priors: 1 cm-eq = depth / 200
     priors = [se3_noise(gt, 0.5, depth / 200.0, rng) for _, gt, _, depth in queries[:2]]
@@ -158,6 +159,16 @@ def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
             assert not r.accepted and r.pose == prior, (r.rejected, t1 * 200 / depth)
         else:
             assert r.accepted and t1 < t0 and a1 < a0, (t0, a0, t1, a1)
+    # the prior's expected error from an ACE inlier count (adapters/confidence.py): a confident pose (4,500
+    # inliers: 0.62 cm / 0.16 deg at 2 m) is more precise than the map's minimum is sharp, and is kept; a doubtful
+    # one (500 inliers: 3.8 cm / 1.2 deg) is not, and is refined as without a count
+    error = dict(zip(("prior_error_depth", "prior_error_deg"), inlier_prior_error(4500)))
+    confident = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, **error)
+    assert confident.rejected == "prior more precise" and confident.pose == priors[0]
+    assert confident.route == "gradient"  # no lattice search after the verdict
+    assert hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, **inlier_trust(4500)).pose == priors[0]
+    doubtful = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, **inlier_trust(500))
+    assert doubtful.accepted and doubtful.pose == free.pose
 
 
 def test_pose_uncertainty_blocks_and_degenerate_cases():

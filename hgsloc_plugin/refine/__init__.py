@@ -1,6 +1,6 @@
 """The heuristic pose search for one query: config, scorer, lattice search and the Refiner."""
 
 from .config import PRESETS, RefineConfig
-from .refiner import LevelStats, Refiner, RefineResult
+from .refiner import PER_QUERY, LevelStats, Refiner, RefineResult
 
-__all__ = ["PRESETS", "LevelStats", "RefineConfig", "RefineResult", "Refiner"]
+__all__ = ["PER_QUERY", "PRESETS", "LevelStats", "RefineConfig", "RefineResult", "Refiner"]

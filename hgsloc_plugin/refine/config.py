@@ -42,6 +42,18 @@ class RefineConfig:
             of a coarse pose is a few coarse steps; with the default levels 8 x 4 px of image motion, e.g. about
             23 % of the median depth and 13 deg at 160 px and a 60 deg field of view).
         trust_steps: multiple of the coarsest step used for an automatic trust region.
+        prior_error / prior_error_deg: the coarse poses' typical (median) error, camera centre in scene units
+            and rotation in degrees, when known (a localizer's published accuracy, its inlier count:
+            ``adapters/confidence.py``); None (default): unknown. The refined pose is then returned only when
+            its own uncertainty (``RefineResult.sigma_t`` / ``sigma_r_deg``) is below the prior's error in
+            translation or in rotation; when both exceed it the prior is more precise than the map's minimum
+            and is kept (``rejected: "prior more precise"``). A real map's minimum can lie centimetres from
+            the true pose (snow query 0: 2.9 cm-equivalent) in a sharp, significant valley; no image cost tells
+            that drift from a correction, the prior's own accuracy can (``benchmarks/trust.py``: ACE-shaped
+            priors with the expected error of their inlier counts, 0.6-0.9 cm / 0.16-0.31 deg for most, against
+            snow's sigma of 1.4 cm-eq / 0.44 deg: 0 worse instead of 1 on snow, 1 instead of 2 on lego, the room
+            unchanged; one figure declared for all poses helped nowhere). Only one given: only that one is
+            compared.
         acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
             of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
             coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
@@ -107,6 +119,8 @@ class RefineConfig:
     max_shift: float | None = None
     max_rotation_deg: float | None = None
     trust_steps: float = 8.0
+    prior_error: float | None = None
+    prior_error_deg: float | None = None
     acceptance: str = "trust"
     working_set: bool = True
     working_set_min: int = 100_000
@@ -128,7 +142,7 @@ class RefineConfig:
             raise ValueError(f"metric must be one of {METRICS}, got {self.metric!r}")
         if self.acceptance not in ("trust", "cost"):
             raise ValueError(f"acceptance must be 'trust' or 'cost', got {self.acceptance!r}")
-        for name in ("max_shift", "max_rotation_deg"):
+        for name in ("max_shift", "max_rotation_deg", "prior_error", "prior_error_deg"):
             v = getattr(self, name)
             if v is not None and not (v > 0 and math.isfinite(v)):
                 raise ValueError(f"{name} must be a positive number or None, got {v!r}")

@@ -57,12 +57,15 @@ class RefineResult:
             photos); nan when the search's pose was not returned or no polish ran. covariance: [6, 6] of the
             increment ``xi = (w, v)`` of ``Pose.perturbed_in_camera`` at the returned pose, or None.
         rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
-            "trust-region edge", "level inconsistency", "no improvement"), None when accepted or failed.
+            "trust-region edge", "level inconsistency", "no improvement", "prior more precise"), None when
+            accepted or failed.
         search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
             not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
         max_shift / max_rotation_deg: the trust region the query ran with (scene units, degrees): the
             ``refine`` call's, else ``RefineConfig``'s, else the automatic one.
+        prior_error / prior_error_deg: the coarse pose's expected error the query ran with (scene units,
+            degrees; nan when not given): the ``refine`` call's, else ``RefineConfig``'s.
         expansions / renders: search effort (renders: every plain render of the query, the polish's line search
             included); levels: per-level details; seconds: wall time.
         working_set: Gaussians the search rendered (the largest of the query's working-set selections; the whole
@@ -103,6 +106,8 @@ class RefineResult:
     gradient_rejected: str | None = None
     max_shift: float = math.nan
     max_rotation_deg: float = math.nan
+    prior_error: float = math.nan
+    prior_error_deg: float = math.nan
 
     @property
     def derivative_passes(self) -> int:
@@ -126,6 +131,7 @@ class RefineResult:
             "derivative_passes": self.derivative_passes, "route": self.route,
             "gradient_rejected": self.gradient_rejected, "polish": [p.to_dict() for p in self.polish],
             "max_shift": self.max_shift, "max_rotation_deg": self.max_rotation_deg,
+            "prior_error": self.prior_error, "prior_error_deg": self.prior_error_deg,
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
             "levels": [vars(lv) for lv in self.levels],
             "assessment": self.assessment.to_dict() if self.assessment else None,
@@ -157,6 +163,16 @@ class _Plan:
     depth: float
     max_t: float
     max_r: float
+    prior_t: float | None = None
+    prior_r: float | None = None
+
+
+#: what a query may set for itself (``Refiner.refine``'s keywords; also ``batch.Query``'s fields): its trust
+#: region and its prior's expected error, absolute or as a fraction of the query's median depth
+PER_QUERY = ("max_shift", "max_rotation_deg", "max_shift_depth", "prior_error", "prior_error_deg",
+             "prior_error_depth")
+#: ``RefineResult.rejected`` when the prior's expected error is below the refined pose's uncertainty
+PRIOR_MORE_PRECISE = "prior more precise"
 
 
 class Refiner:
@@ -183,8 +199,8 @@ class Refiner:
         self.raster = raster or RasterConfig()
         self.renderer = get_renderer(scene, self.raster)
 
-    def _plan(self, camera: Camera, coarse: Pose, max_shift: float | None = None,
-              max_rotation_deg: float | None = None, max_shift_depth: float | None = None) -> _Plan:
+    def _plan(self, camera: Camera, coarse: Pose, per_query: dict) -> _Plan:
+        """The query's plan; ``per_query``: ``PER_QUERY`` keywords (None: the config's, else automatic)."""
         cfg = self.config
         cam_final = camera.with_max_side(cfg.score_max_side)
         coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
@@ -202,15 +218,19 @@ class Refiner:
             auto_t, auto_r = 0.5 * depth, 10.0
         else:
             auto_t, auto_r = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
-        if max_shift is None and max_shift_depth is not None:
-            max_shift = max_shift_depth * depth
-        max_t = next(v for v in (max_shift, cfg.max_shift, auto_t) if v is not None)
-        max_r = next(v for v in (max_rotation_deg, cfg.max_rotation_deg, auto_r) if v is not None)
-        return _Plan(cam_final, cam_coarse, cam_polish, levels, depth, max_t, max_r)
+        def pick(key: str, auto: float | None = None) -> float | None:
+            v = per_query.get(key)
+            if v is None and per_query.get(key + "_depth") is not None:
+                v = per_query[key + "_depth"] * depth
+            return next((u for u in (v, getattr(cfg, key)) if u is not None), auto)
+
+        return _Plan(cam_final, cam_coarse, cam_polish, levels, depth, pick("max_shift", auto_t),
+                     pick("max_rotation_deg", auto_r), pick("prior_error"), pick("prior_error_deg"))
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
                max_shift: float | None = None, max_rotation_deg: float | None = None,
-               max_shift_depth: float | None = None) -> RefineResult:
+               max_shift_depth: float | None = None, prior_error: float | None = None,
+               prior_error_deg: float | None = None, prior_error_depth: float | None = None) -> RefineResult:
         """Refine one query.
 
         Args:
@@ -222,6 +242,10 @@ class Refiner:
                 overrides ``RefineConfig``'s when given.
             max_shift_depth: the shift bound as a fraction of the query's median depth (the one the search's
                 steps are made from), used when ``max_shift`` is not given.
+            prior_error / prior_error_deg: this prior's expected (median) error, camera centre in scene units
+                and rotation in degrees (e.g. from the localizer's inlier count); the refined pose is not
+                returned when its own uncertainty exceeds both (``RefineConfig.prior_error``).
+                ``prior_error_depth``: the centre's as a fraction of the median depth.
 
         Returns:
             A :class:`RefineResult`; its pose is the search's only when that passes the acceptance rule
@@ -233,17 +257,20 @@ class Refiner:
             raise TypeError(f"camera must be a Camera, got {type(camera).__name__}")
         if not isinstance(coarse_pose, Pose):
             raise TypeError(f"coarse_pose must be a Pose, got {type(coarse_pose).__name__}")
-        for key, v in (("max_shift", max_shift), ("max_rotation_deg", max_rotation_deg),
-                       ("max_shift_depth", max_shift_depth)):
+        per_query = dict(zip(PER_QUERY, (max_shift, max_rotation_deg, max_shift_depth, prior_error,
+                                         prior_error_deg, prior_error_depth)))
+        for key, v in per_query.items():
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{key} must be a positive number, got {v}")
         img = load_image(image, name=name or "image", background=cfg.background)
         img = check_size(img, camera, cfg.resize_query, name or "image")
-        plan = self._plan(camera, coarse_pose, max_shift, max_rotation_deg, max_shift_depth)
+        plan = self._plan(camera, coarse_pose, per_query)
         renderer = self._working_set(plan, coarse_pose)
         scorer = Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha)
         result = RefineResult(pose=coarse_pose, initial_pose=coarse_pose, name=name, working_set=renderer.n,
-                              max_shift=plan.max_t, max_rotation_deg=plan.max_r)
+                              max_shift=plan.max_t, max_rotation_deg=plan.max_r,
+                              prior_error=math.nan if plan.prior_t is None else plan.prior_t,
+                              prior_error_deg=math.nan if plan.prior_r is None else plan.prior_r)
         try:
             self._run(plan, renderer, scorer, img, coarse_pose, result)
         finally:
@@ -261,7 +288,9 @@ class Refiner:
         cfg = self.config
         if cfg.gradient_first and cfg.search and cfg.polishes and cfg.acceptance == "trust":
             self._attempt(plan, renderer, scorer, img, coarse_pose, result, search=False)
-            if result.accepted or (result.assessment is not None and settled(result.assessment)):
+            # a prior more precise than the minimum near it is kept: the search cannot make that valley sharper
+            if (result.accepted or result.rejected == PRIOR_MORE_PRECISE
+                    or (result.assessment is not None and settled(result.assessment))):
                 result.route = "gradient"
                 return
             logger.debug("query %s: gradient route rejected (%s); searching", result.name, result.rejected)
@@ -300,17 +329,33 @@ class Refiner:
             result.confidence = result.assessment.confidence
         elif not best_cost < result.cost_initial:
             result.rejected = "no improvement"
+        uncertainty = None  # the last polish stage's Hessian is at its best pose, the one judged
+        if result.rejected is None and result.polish:
+            last = result.polish[-1]
+            uncertainty = pose_uncertainty(last.jtj, last.cost)
+            if self._prior_more_precise(plan, uncertainty[1], uncertainty[2]):
+                result.rejected = PRIOR_MORE_PRECISE
+                logger.debug("query %s: refined sigma %.4g / %.3g deg above the prior's expected error %s / %s deg",
+                             name, uncertainty[1], uncertainty[2], plan.prior_t, plan.prior_r)
         if result.rejected is None:
             result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
-            if result.polish:  # the last stage's Hessian is at its best pose, the one returned
-                last = result.polish[-1]
-                result.covariance, result.sigma_t, result.sigma_r_deg = pose_uncertainty(last.jtj, last.cost)
+            if uncertainty is not None:
+                result.covariance, result.sigma_t, result.sigma_r_deg = uncertainty
             if result.assessment is None:  # cost-only acceptance measures nothing to be confident about
                 result.confidence = math.nan
         else:
+            result.confidence = 0.0
             result.pose, result.cost_final, result.accepted = coarse_pose, result.cost_initial, False
             logger.debug("query %s: %s pose rejected (%s): %s", name, "search" if search else "gradient",
                          result.rejected, result.assessment.to_dict() if result.assessment else {})
+
+    @staticmethod
+    def _prior_more_precise(plan: _Plan, sigma_t: float, sigma_r_deg: float) -> bool:
+        """Whether a pose's uncertainty exceeds the prior's expected error in every part given (translation,
+        rotation); False when neither is given or the uncertainty is unknown."""
+        checks = [(s, e) for s, e in ((sigma_t, plan.prior_t), (sigma_r_deg, plan.prior_r))
+                  if e is not None]
+        return bool(checks) and all(math.isfinite(s) and s > e for s, e in checks)
 
     def _working_set(self, plan: _Plan, coarse: Pose):
         """The renderer the search uses: a :class:`WorkingSet` that follows the poses scored (region radius
@@ -343,13 +388,15 @@ class Refiner:
         return pose
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None,
-                   max_shift: float | None = None, max_rotation_deg: float | None = None,
-                   max_shift_depth: float | None = None) -> RefineResult:
-        """Like :meth:`refine`, but a failure (bad image, camera, pose) comes back as a failed result."""
+                   **per_query: float | None) -> RefineResult:
+        """Like :meth:`refine` (``per_query``: its ``PER_QUERY`` keywords), but a failure (bad image, camera,
+        pose) comes back as a failed result."""
         t0 = time.perf_counter()
+        unknown = set(per_query) - set(PER_QUERY)
+        if unknown:
+            raise TypeError(f"try_refine got unexpected keywords {sorted(unknown)}; per-query ones: {PER_QUERY}")
         try:
-            return self.refine(image, camera, coarse_pose, name=name, max_shift=max_shift,
-                               max_rotation_deg=max_rotation_deg, max_shift_depth=max_shift_depth)
+            return self.refine(image, camera, coarse_pose, name=name, **per_query)
         except Exception as exc:  # recorded per query; a batch goes on
             logger.warning("query %s failed: %s", name, exc)
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,

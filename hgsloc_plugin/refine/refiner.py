@@ -199,9 +199,11 @@ class Refiner:
         self.raster = raster or RasterConfig()
         self.renderer = get_renderer(scene, self.raster)
 
-    def _plan(self, camera: Camera, coarse: Pose, per_query: dict) -> _Plan:
-        """The query's plan; ``per_query``: ``PER_QUERY`` keywords (None: the config's, else automatic)."""
+    def _plan(self, camera: Camera, coarse: Pose, per_query: dict | None = None) -> _Plan:
+        """The query's plan; ``per_query``: ``PER_QUERY`` keywords (None or absent: the config's, else
+        automatic)."""
         cfg = self.config
+        per_query = per_query or {}
         cam_final = camera.with_max_side(cfg.score_max_side)
         coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
         cam_coarse = cam_final.with_max_side(int(round(coarse_side)))

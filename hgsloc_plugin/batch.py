@@ -39,6 +39,9 @@ class Query:
                                   **{k: getattr(self, k) for k in PER_QUERY})
 
 
+_QUERY_KEYS = {"image", "camera", "coarse_pose", "name", *PER_QUERY}
+
+
 def as_queries(items: Iterable) -> list[Query]:
     """Queries from (image, camera, coarse_pose[, name]) tuples or dicts with those keys (and optionally
     the per-query keywords of ``Refiner.refine``: ``max_shift``, ``max_rotation_deg``, ``prior_error``, ...)."""
@@ -47,6 +50,9 @@ def as_queries(items: Iterable) -> list[Query]:
         if isinstance(it, Query):
             out.append(it)
         elif isinstance(it, dict):
+            unknown = sorted(set(it) - _QUERY_KEYS)
+            if unknown:  # a misspelt region or error would otherwise be dropped without a word
+                raise ValueError(f"query {k}: unknown keys {unknown}; a query dict takes {sorted(_QUERY_KEYS)}")
             out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"],
                              **{key: it.get(key) for key in PER_QUERY}))
         else:

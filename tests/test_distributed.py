@@ -4,6 +4,7 @@ query; resume."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -62,6 +63,23 @@ def test_workers_use_the_callers_raster_config(local_ray, case):
     assert [r.cost_initial for r in got] == [r.cost_initial for r in ref]
     assert [r.pose for r in got] == [r.pose for r in ref]
     assert [r.cost_initial for r in default] != [r.cost_initial for r in ref]  # the config does change renders
+
+
+def test_workers_get_each_querys_region_and_prior_error(local_ray, case):
+    """Per-query fields (``Refiner.refine``'s keywords, from dicts) travel to the workers: the same results as in
+    process, each recording its own region and expected error; a misspelt key is refused, not dropped."""
+    scene, tasks = case
+    refiner = hp.HGSLocPlugin(scene, CFG)
+    per_query = [{"max_shift": 0.004, "max_rotation_deg": 0.2}, {"prior_error": 0.02, "prior_error_deg": 0.5}, {}]
+    items = [dict(image=t.image, camera=t.camera, coarse_pose=t.coarse_pose, name=t.name, **extra)
+             for t, extra in zip(tasks, per_query)]
+    ref = refiner.refine_many(items, progress=False)
+    got = refiner.refine_many(items, progress=False, workers=2)
+    assert [r.pose for r in got] == [r.pose for r in ref]
+    assert (got[0].max_shift, got[0].max_rotation_deg) == (0.004, 0.2) and got[2].max_shift != 0.004
+    assert (got[1].prior_error, got[1].prior_error_deg) == (0.02, 0.5) and math.isnan(got[0].prior_error)
+    with pytest.raises(ValueError, match="max_shif_depth"):
+        refiner.refine_many([dict(items[2], max_shif_depth=0.1)], progress=False)
 
 
 def test_killed_worker_still_yields_every_query_once(local_ray, case):

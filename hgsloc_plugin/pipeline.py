@@ -134,15 +134,12 @@ def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], dict]:
     """name -> the ``Query`` fields from the record's inlier count (trust region and expected error,
     ``adapters/confidence.inlier_trust``; {} without one); a value set in the refiner's config stays (it is not
     passed). Shift and error are depth-relative: the refiner scales them by the median depth it computes for
-    the query anyway."""
-    # the config field that, when set, wins over each key
-    config_key = {"max_shift_depth": "max_shift", "max_rotation_deg": "max_rotation_deg",
-                  "prior_error_depth": "prior_error", "prior_error_deg": "prior_error_deg"}
+    the query anyway (a depth-relative key ``X_depth`` gives way to the config's ``X``, as in ``Refiner._plan``)."""
 
     def region_of(name: str) -> dict:
         inliers = record_inliers(pf.dialect, pf.record(name).tokens)
         trust = {} if inliers is None else inlier_trust(inliers)
-        return {k: v for k, v in trust.items() if getattr(cfg, config_key[k]) is None}
+        return {k: v for k, v in trust.items() if getattr(cfg, k.removesuffix("_depth")) is None}
 
     return region_of
 

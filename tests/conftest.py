@@ -36,6 +36,20 @@ def random_scene(n=400, sh_degree=1, seed=0, spread=1.0, centre=(0.0, 0.0, 3.0))
     return GaussianScene.from_arrays(means, quats, scales, opac, sh=sh)
 
 
+def room_query(cam, pose_seed: int, noise_deg: float, noise_shift: float, noise_seed: int, density: float = 0.35):
+    """The demo room, one of its query poses, that pose's rendering at ``cam`` and a prior ``noise_deg`` /
+    ``noise_shift`` off it: (scene, true pose, image [H, W, 3], prior)."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.demo.queries import query_poses
+    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.noise import se3_noise
+
+    scene = make_room_scene(density=density)
+    gt = query_poses(1, seed=pose_seed)[0]
+    return scene, gt, hp.render(scene, cam, gt), se3_noise(gt, noise_deg, noise_shift,
+                                                          np.random.default_rng(noise_seed))
+
+
 @pytest.fixture(scope="session")
 def donut():
     from hgsloc_plugin import GaussianScene

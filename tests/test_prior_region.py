@@ -24,12 +24,11 @@ from hgsloc_plugin.adapters.confidence import (
     inlier_region,
     inlier_trust,
 )
-from hgsloc_plugin.demo.queries import query_poses
-from hgsloc_plugin.demo.scene import make_room_scene
-from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine.refiner import median_depth
 from hgsloc_plugin.viz import save_png
+
+from .conftest import room_query
 
 POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "poses" / "7scenes"
 
@@ -78,11 +77,8 @@ def test_inlier_region_is_depth_relative_and_refuses_unusable_counts():
 
 @pytest.fixture(scope="module")
 def room():
-    scene = make_room_scene(density=0.35)
     cam = hp.Camera.from_focal(128, 96, 90.0)
-    gt = query_poses(1, seed=11)[0]
-    img = hp.render(scene, cam, gt)
-    prior = se3_noise(gt, 1.0, 0.03, np.random.default_rng(1))
+    scene, gt, img, prior = room_query(cam, pose_seed=11, noise_deg=1.0, noise_shift=0.03, noise_seed=1)
     return scene, cam, gt, img, prior
 
 

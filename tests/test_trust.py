@@ -18,6 +18,7 @@ from hgsloc_plugin.cli import parse_angle, parse_length
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
 
+from .conftest import room_query
 from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
 
 SNOW = Path(__file__).resolve().parents[2] / "shared" / "data" / "snow"
@@ -78,14 +79,8 @@ def test_units_of_the_trust_region_flags():
 
 def test_user_trust_region_bounds_the_search():
     """With max_shift / max_rotation_deg set, the search's pose stays inside them although the optimum is far."""
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.scene import make_room_scene
-
-    room = make_room_scene(density=0.35)
     cam = hp.Camera.from_focal(160, 120, 110.0)
-    gt = query_poses(1, seed=4)[0]
-    img = hp.render(room, cam, gt)
-    coarse = se3_noise(gt, 2.0, 0.08, np.random.default_rng(2))
+    room, gt, img, coarse = room_query(cam, pose_seed=4, noise_deg=2.0, noise_shift=0.08, noise_seed=2)
     # the lattice alone (fine levels: the coarse steps are larger than the region), then search + polish
     for cfg, moved in ((hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5, polish=False,
                                                level_pixels=(4.0, 2.0, 1.0, 0.5, 0.25)), 0.01),

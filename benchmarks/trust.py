@@ -19,8 +19,8 @@ image motion on every scene. Priors:
 - ``1 cm / 0.5 deg, region 2 cm / 1 deg``: the 1 cm priors with the trust region set from the localizer's
   expected error (``--max-shift`` / ``--max-rotation``, here twice it) instead of from the coarsest step;
 - ``1 cm / 0.5 deg, error 1 cm / 0.5 deg declared``: the 1 cm priors with their error declared
-  (``--prior-error`` / ``--prior-rotation-error``): a refined pose whose uncertainty exceeds it in both is not
-  returned;
+  (``--prior-error`` / ``--prior-rotation-error``): an accepted refined pose is fused with the prior, weighted by
+  the refined pose's covariance and the declared error (``refine/trust.py``, ``fuse_with_prior``);
 - ``ACE-shaped`` / ``Marepo-shaped``: the camera-frame errors of the real ACE / Marepo estimates of 7-Scenes
   against the SfM pGT (``../shared/data/poses/7scenes``), one drawn per query, so heavy tails included;
 - ``ACE-shaped, ACE's inliers``: the same priors, each with the inlier count ACE wrote for the estimate its
@@ -181,6 +181,7 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
     for name, ps in rows.items():
         t0 = time.perf_counter()
         e0, e1, es, conf, acc, sig = [], [], [], [], [], []
+        fused = 0
         for j, prior in enumerate(ps):
             k = j % len(gts)
             img, gt = imgs[k], gts[k]
@@ -198,6 +199,7 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
                 lst.append((t * scale[k], a))
             conf.append(r.confidence if r.accepted else 0.0)
             acc.append(r.accepted)
+            fused += r.accepted and r.fused
             sig.append((r.sigma_t * scale[k], r.sigma_r_deg))
         sec = (time.perf_counter() - t0) / len(ps)
         e0, e1, es, conf, acc, sig = map(np.array, (e0, e1, es, conf, acc, sig))
@@ -219,7 +221,8 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
             ratio = np.median(e1[ok] / sig[ok], axis=0)
             sg = (f"{np.median(sig[ok, 0]):.2f} / {np.median(sig[ok, 1]):.2f} ({ratio[0]:.2f} / {ratio[1]:.2f})")
         row = (f"| {name} | {med(e0)} | {med(e1)} | {better.sum()} / {unchanged.sum()} / {worse.sum()} | "
-               f"{recall(e0)} | {recall(e1)} | {acc.sum()} / {len(acc)} | {med(e1[acc], False)} / "
+               f"{recall(e0)} | {recall(e1)} | {acc.sum()} / {len(acc)}{f' ({fused} fused)' if fused else ''} | "
+               f"{med(e1[acc], False)} / "
                f"{med(es[~acc], False)} | {'-' if np.isnan(a) else f'{a:.2f}'} | {sg} | {sec:.1f} |")
         print(row, flush=True)
         lines.append(row)

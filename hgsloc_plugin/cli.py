@@ -69,13 +69,14 @@ def cmd_refine(args) -> int:
 
 
 def summary_line(t: dict, out) -> str:
-    """One line: refined, kept (per reason), failed, median confidence, effort (renders, queries that needed the
-    lattice search, seconds)."""
+    """One line: refined (fused with the prior), kept (per reason), failed, median confidence, effort (renders,
+    queries that needed the lattice search, seconds)."""
     kept = sum(t.get("rejected", {}).values())
     why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
     conf, st, sr = t.get("median_confidence"), t.get("median_sigma_t"), t.get("median_sigma_r_deg")
     sig = f", median sigma {st:.3g} / {sr:.3g} deg" if st is not None and sr is not None else ""
-    return (f"refined {t['accepted']} / {t['queries']} queries, kept the prior for {kept}"
+    fused = f" ({t['fused']} fused with the prior's expected error)" if t.get("fused") else ""
+    return (f"refined {t['accepted']} / {t['queries']} queries{fused}, kept the prior for {kept}"
             + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
             + (f"{conf:.2f}" if conf is not None else "-") + sig
             + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")

@@ -56,6 +56,7 @@ class _Run:
         q = self.report["queries"].values()
         self.report["totals"] = {
             "queries": len(self.report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
+            "fused": sum(1 for v in q if v.get("accepted") and v.get("fused")),
             "failed": sum(1 for v in q if v.get("error")), "rejected": rejected_counts(q),
             "median_confidence": median_confidence(q),
             "median_sigma_t": median_accepted(q, "sigma_t"), "median_sigma_r_deg": median_accepted(q, "sigma_r_deg"),

@@ -52,6 +52,16 @@ def so3_exp(w) -> np.ndarray:
     return np.eye(3) + math.sin(theta) / theta * K + (1 - math.cos(theta)) / theta**2 * (K @ K)
 
 
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix [3, 3] -> axis-angle vector [3] (radians), the inverse of :func:`so3_exp` for angles below pi
+    (through the unit quaternion, so stable near 0)."""
+    q = rotmat_to_qvec(R)  # w >= 0
+    s = float(np.linalg.norm(q[1:]))
+    if s < 1e-300:
+        return np.zeros(3)
+    return q[1:] / s * (2.0 * math.atan2(s, q[0]))
+
+
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Geodesic angle between two rotations in degrees, stable for small angles (CONVENTIONS §7)."""
     Rd = np.asarray(R_a, np.float64).T @ np.asarray(R_b, np.float64)

@@ -1,6 +1,6 @@
 """A per-query trust region and expected prior error from the localizer's own confidence: the ACE/GLACE inlier
-tables against the real 7-Scenes files, the per-call region and prior error of ``refine`` (a prior more precise
-than the refined pose is kept), and pose files whose inlier counts set both."""
+tables against the real 7-Scenes files, the per-call region and prior error of ``refine`` (a prior of known error
+is fused with the refined pose), and pose files whose inlier counts set both."""
 
 from __future__ import annotations
 
@@ -104,34 +104,77 @@ def test_per_call_region_equals_the_configured_one_and_overrides_it(room):
         hp.HGSLocPlugin(scene).refine(img, cam, prior, max_shift=-1.0)
 
 
-def test_a_prior_more_precise_than_the_refined_pose_is_kept(room):
-    """The prior's expected error against the refined pose's own uncertainty: below it in translation and in
-    rotation, the prior is returned ("prior more precise"); below in one only, the refined pose is; per call,
-    from the config and depth-relative alike; unknown (default), no change."""
+def _reference_fusion(pose, cov, prior, err_t, err_deg):
+    """The Gaussian product written out independently: the prior's offset from ``pose`` by the Rodrigues inverse
+    (not the quaternion route), and the posterior mean as a whitened least-squares problem: minimise
+    ``|L^-1 x|^2 + sum_i (x_i - xp_i)^2 / s_i^2`` with ``L L^T = cov`` and s the prior's per-axis spread."""
+    from hgsloc_plugin.refine.trust import PRIOR_SPREAD
+
+    dR = prior.R @ pose.R.T
+    ang = math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1))
+    w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) * ang / (2 * math.sin(ang))
+    xp = np.r_[w, prior.tvec - dR @ pose.tvec]
+    rows = [np.linalg.inv(np.linalg.cholesky(cov))]
+    rhs = [np.zeros(6)]
+    for sl, err in ((slice(0, 3), None if err_deg is None else math.radians(err_deg)), (slice(3, 6), err_t)):
+        if err is not None:
+            sel = np.eye(6)[sl] / (PRIOR_SPREAD * err)
+            rows.append(sel)
+            rhs.append(sel @ xp)
+    x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    return pose.perturbed_in_camera(x[:3], x[3:])
+
+
+def _close(a, b, tol=1e-7):
+    t, r = a.errors_to(b)
+    return t < tol and r < 1e-5
+
+
+def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
+    """The prior's expected error given (per call, from the config or depth-relative alike): the accepted refined
+    pose is fused with the prior, as an independent Gaussian product computes it; a prior far more precise than
+    the refinement holds the pose near it, a vague one leaves the refinement as it is; a prior so precise that the
+    fusion is no better in cost is kept ("prior more precise"); one part given pulls only that part."""
+    from hgsloc_plugin.refine.trust import PRIOR_SPREAD
+
     scene, cam, gt, img, prior = room
     free = hp.HGSLocPlugin(scene).refine(img, cam, prior)
-    assert free.accepted and 0 < free.sigma_t < 1 and 0 < free.sigma_r_deg < 1
+    assert free.accepted and not free.fused and 0 < free.sigma_t < 1 and 0 < free.sigma_r_deg < 1
     assert math.isnan(free.prior_error) and free.pose.errors_to(gt)[0] < 0.5 * prior.errors_to(gt)[0]
     st, sr = free.sigma_t, free.sigma_r_deg
-    kept = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=st / 2, prior_error_deg=sr / 2)
-    assert not kept.accepted and kept.rejected == "prior more precise" and kept.pose == prior
-    assert kept.confidence == 0.0 and math.isnan(kept.sigma_t) and kept.covariance is None
-    assert kept.search_pose is not None and kept.search_pose != prior  # what was refused, for the record
-    rec = json.loads(json.dumps(kept.to_dict()))
-    assert rec["prior_error"] == st / 2 and rec["prior_error_deg"] == sr / 2 and rec["rejected"] == kept.rejected
+    fused = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=st / 10, prior_error_deg=sr / 10)
+    assert fused.accepted and fused.fused and fused.rejected is None and fused.search_pose == free.pose
+    assert _close(fused.pose, _reference_fusion(free.pose, free.covariance, prior, st / 10, sr / 10))
+    # moved off the refined pose (towards the prior along the directions the image constrains least; along the
+    # well-constrained ones the refinement stays), and more certain than either alone
+    assert fused.pose.errors_to(free.pose)[1] > 0.1 * free.pose.errors_to(prior)[1]
+    assert fused.sigma_t < min(st, PRIOR_SPREAD * st / 10 * math.sqrt(3))
+    assert fused.sigma_r_deg < min(sr, PRIOR_SPREAD * sr / 10 * math.sqrt(3))
+    assert fused.cost_final < fused.cost_initial and fused.confidence > 0
+    rec = json.loads(json.dumps(fused.to_dict()))
+    assert rec["prior_error"] == st / 10 and rec["prior_error_deg"] == sr / 10 and rec["fused"] is True
+    assert rec["qvec"] == fused.pose.qvec.tolist() and rec["search_qvec"] == free.pose.qvec.tolist()
     # the same from the config, and with the centre's error as a fraction of the median depth
-    by_config = hp.HGSLocPlugin(scene, hp.RefineConfig(prior_error=st / 2, prior_error_deg=sr / 2))
-    assert by_config.refine(img, cam, prior).pose == prior
+    by_config = hp.HGSLocPlugin(scene, hp.RefineConfig(prior_error=st / 10, prior_error_deg=sr / 10))
+    assert by_config.refine(img, cam, prior).pose == fused.pose
     depth = median_depth(scene, cam, prior)
-    rel = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error_depth=st / 2 / depth, prior_error_deg=sr / 2)
-    assert rel.prior_error == pytest.approx(st / 2) and rel.rejected == "prior more precise"
-    # a prior less precise in either part: the refined pose is returned (the per-call value wins over the config)
-    for t_err, r_err in ((st / 2, 2 * sr), (2 * st, sr / 2)):
-        r = by_config.refine(img, cam, prior, prior_error=t_err, prior_error_deg=r_err)
-        assert r.accepted and r.pose == free.pose, (t_err, r_err, r.rejected)
-    # one part given: only that one is compared
-    assert hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error_deg=sr / 2).pose == prior
-    assert hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=2 * st).pose == free.pose
+    rel = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error_depth=st / 10 / depth, prior_error_deg=sr / 10)
+    assert rel.prior_error == pytest.approx(st / 10) and _close(rel.pose, fused.pose)
+    # a vague prior (the per-call value wins over the config): the refinement as it is, to well under its sigma
+    vague = by_config.refine(img, cam, prior, prior_error=1e4 * st, prior_error_deg=1e4 * sr)
+    assert vague.fused and vague.pose.errors_to(free.pose)[0] < 1e-3 * st
+    # a prior far more precise than anything the image can add: the fusion is the prior, no lower cost, kept
+    kept = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=1e-9 * st, prior_error_deg=1e-9 * sr)
+    assert not kept.accepted and kept.rejected == "prior more precise" and kept.pose == prior and not kept.fused
+    assert kept.confidence == 0.0 and math.isnan(kept.sigma_t) and kept.covariance is None
+    assert kept.search_pose == free.pose  # what was refused, for the record
+    # one part given: only that part pulls
+    rot_only = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error_deg=sr / 10)
+    assert _close(rot_only.pose, _reference_fusion(free.pose, free.covariance, prior, None, sr / 10))
+    assert rot_only.pose.errors_to(prior)[1] < 0.5 * free.pose.errors_to(prior)[1]
+    t_only = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=st / 10)
+    assert _close(t_only.pose, _reference_fusion(free.pose, free.covariance, prior, st / 10, None))
+    assert not _close(t_only.pose, rot_only.pose, 1e-4 * st)
     with pytest.raises(ValueError, match="prior_error"):
         hp.RefineConfig(prior_error=0.0)
     with pytest.raises(ValueError, match="prior_error_deg"):
@@ -163,7 +206,13 @@ def test_ace_file_inlier_counts_set_each_query_region(tmp_path, room):
         assert q[name]["prior_error"] == pytest.approx(err * depth)
         assert q[name]["prior_error_deg"] == pytest.approx(err_deg)
     assert q["q0.png"]["max_shift"] < q["q1.png"]["max_shift"] / 10
+    # each refined pose is fused with its prior's expected error, and the totals count them
+    totals = json.loads((tmp_path / "a.txt.json").read_text())["totals"]
+    assert all(v["fused"] == v["accepted"] for v in q.values())
+    assert totals["fused"] == totals["accepted"] >= 1
     off = run("b.txt", inlier_region=False)
+    off_totals = json.loads((tmp_path / "b.txt.json").read_text())["totals"]
+    assert off_totals["fused"] == 0 and off_totals["accepted"] >= 1
     assert off["q0.png"]["max_shift"] == off["q1.png"]["max_shift"] > q["q0.png"]["max_shift"]
     assert math.isnan(off["q0.png"]["prior_error"])  # unknown: null in the JSON report
     assert json.loads((tmp_path / "b.txt.json").read_text())["queries"]["q0.png"]["prior_error"] is None

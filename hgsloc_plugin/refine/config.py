@@ -44,16 +44,15 @@ class RefineConfig:
         trust_steps: multiple of the coarsest step used for an automatic trust region.
         prior_error / prior_error_deg: the coarse poses' typical (median) error, camera centre in scene units
             and rotation in degrees, when known (a localizer's published accuracy, its inlier count:
-            ``adapters/confidence.py``); None (default): unknown. The refined pose is then returned only when
-            its own uncertainty (``RefineResult.sigma_t`` / ``sigma_r_deg``) is below the prior's error in
-            translation or in rotation; when both exceed it the prior is more precise than the map's minimum
-            and is kept (``rejected: "prior more precise"``). A real map's minimum can lie centimetres from
-            the true pose (snow query 0: 2.9 cm-equivalent) in a sharp, significant valley; no image cost tells
-            that drift from a correction, the prior's own accuracy can (``benchmarks/trust.py``: ACE-shaped
-            priors with the expected error of their inlier counts, 0.6-0.9 cm / 0.16-0.31 deg for most, against
-            snow's sigma of 1.4 cm-eq / 0.44 deg: 0 worse instead of 1 on snow, 1 instead of 2 on lego, the room
-            unchanged; one figure declared for all poses helped nowhere). Only one given: only that one is
-            compared.
+            ``adapters/confidence.py``); None (default): unknown. An accepted refined pose is then fused with
+            the prior (``refine/trust.py``, ``fuse_with_prior``: the posterior mean of the refined pose with its
+            covariance and the prior with a per-axis spread of 1.3x its median error); where the fusion's cost
+            is not below the prior's, the prior is kept (``rejected: "prior more precise"``). A real map's
+            minimum can lie centimetres from the true pose along a direction the image barely constrains (snow
+            query 0: 2.9 cm-equivalent) in a sharp, significant valley; no image cost tells that drift from a
+            correction, the prior's own accuracy can (``benchmarks/trust.py``: with a declared 1 cm / 0.5 deg,
+            Marepo's median, or ACE's inlier counts no snow, lego or room query ends worse). Only one given: the
+            prior pulls only in that part.
         acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
             of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
             coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).

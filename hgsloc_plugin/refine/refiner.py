@@ -22,7 +22,7 @@ from .config import RefineConfig
 from .polish import MIN_STEP_PX, STAGE_STEP_PX, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, PaperSpace, best_first
-from .trust import Assessment, assess, pose_uncertainty, settled
+from .trust import Assessment, assess, fuse_with_prior, pose_uncertainty, settled, sigmas
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -54,11 +54,14 @@ class RefineResult:
         confidence: in [0, 1], 0 when not accepted (``refine/trust.py``; the inputs are in ``assessment``).
         sigma_t / sigma_r_deg: estimated standard deviation of the returned pose's camera centre (scene units)
             and rotation (degrees), from the polish's Hessian (``trust.pose_uncertainty``, calibrated on real
-            photos); nan when the search's pose was not returned or no polish ran. covariance: [6, 6] of the
-            increment ``xi = (w, v)`` of ``Pose.perturbed_in_camera`` at the returned pose, or None.
+            photos; the fusion's when ``fused``); nan when the search's pose was not returned or no polish ran.
+            covariance: [6, 6] of the increment ``xi = (w, v)`` of ``Pose.perturbed_in_camera`` at the returned
+            pose, or None.
+        fused: the returned pose is the search's fused with the coarse pose of known expected error
+            (``prior_error`` / ``prior_error_deg`` given: ``trust.fuse_with_prior``), not the search's itself.
         rejected: why the search's pose was not returned ("insignificant", "weak alignment", "flat valley",
-            "trust-region edge", "level inconsistency", "no improvement", "prior more precise"), None when
-            accepted or failed.
+            "trust-region edge", "level inconsistency", "no improvement", "prior more precise": its fusion with
+            a prior of known error is no better than that prior), None when accepted or failed.
         search_pose / search_cost: the search's best pose (after the polish, when on) and its cost, returned or
             not: the pose the acceptance rule judged.
         assessment: the acceptance rule's measurements (significance, sharpness, travel, ...).
@@ -104,6 +107,7 @@ class RefineResult:
     polish: list[PolishStats] = field(default_factory=list)
     route: str | None = None
     gradient_rejected: str | None = None
+    fused: bool = False
     max_shift: float = math.nan
     max_rotation_deg: float = math.nan
     prior_error: float = math.nan
@@ -129,7 +133,8 @@ class RefineResult:
             "seconds": round(self.seconds, 4), "error": self.error, "working_set": self.working_set,
             "working_set_selections": self.working_set_selections,
             "derivative_passes": self.derivative_passes, "route": self.route,
-            "gradient_rejected": self.gradient_rejected, "polish": [p.to_dict() for p in self.polish],
+            "gradient_rejected": self.gradient_rejected, "fused": self.fused,
+            "polish": [p.to_dict() for p in self.polish],
             "max_shift": self.max_shift, "max_rotation_deg": self.max_rotation_deg,
             "prior_error": self.prior_error, "prior_error_deg": self.prior_error_deg,
             "qvec": self.pose.qvec.tolist(), "tvec": self.pose.tvec.tolist(),
@@ -171,7 +176,8 @@ class _Plan:
 #: region and its prior's expected error, absolute or as a fraction of the query's median depth
 PER_QUERY = ("max_shift", "max_rotation_deg", "max_shift_depth", "prior_error", "prior_error_deg",
              "prior_error_depth")
-#: ``RefineResult.rejected`` when the prior's expected error is below the refined pose's uncertainty
+#: ``RefineResult.rejected`` when the fusion with a prior of known error is no better than the prior (its cost is
+#: not lower) or the refined pose's uncertainty is unbounded
 PRIOR_MORE_PRECISE = "prior more precise"
 
 
@@ -245,8 +251,8 @@ class Refiner:
             max_shift_depth: the shift bound as a fraction of the query's median depth (the one the search's
                 steps are made from), used when ``max_shift`` is not given.
             prior_error / prior_error_deg: this prior's expected (median) error, camera centre in scene units
-                and rotation in degrees (e.g. from the localizer's inlier count); the refined pose is not
-                returned when its own uncertainty exceeds both (``RefineConfig.prior_error``).
+                and rotation in degrees (e.g. from the localizer's inlier count); an accepted refined pose is
+                then fused with the prior, weighted by the two uncertainties (``RefineConfig.prior_error``).
                 ``prior_error_depth``: the centre's as a fraction of the median depth.
 
         Returns:
@@ -332,13 +338,13 @@ class Refiner:
         elif not best_cost < result.cost_initial:
             result.rejected = "no improvement"
         uncertainty = None  # the last polish stage's Hessian is at its best pose, the one judged
+        result.fused = False
         if result.rejected is None and result.polish:
             last = result.polish[-1]
             uncertainty = pose_uncertainty(last.jtj, last.cost)
-            if self._prior_more_precise(plan, uncertainty[1], uncertainty[2]):
-                result.rejected = PRIOR_MORE_PRECISE
-                logger.debug("query %s: refined sigma %.4g / %.3g deg above the prior's expected error %s / %s deg",
-                             name, uncertainty[1], uncertainty[2], plan.prior_t, plan.prior_r)
+            if plan.prior_t is not None or plan.prior_r is not None:
+                best_pose, best_cost, uncertainty = self._fuse(plan, scorer, best_pose, uncertainty, coarse_pose,
+                                                               result)
         if result.rejected is None:
             result.pose, result.cost_final, result.accepted = best_pose, best_cost, True
             if uncertainty is not None:
@@ -352,12 +358,24 @@ class Refiner:
                          result.rejected, result.assessment.to_dict() if result.assessment else {})
 
     @staticmethod
-    def _prior_more_precise(plan: _Plan, sigma_t: float, sigma_r_deg: float) -> bool:
-        """Whether a pose's uncertainty exceeds the prior's expected error in every part given (translation,
-        rotation); False when neither is given or the uncertainty is unknown."""
-        checks = [(s, e) for s, e in ((sigma_t, plan.prior_t), (sigma_r_deg, plan.prior_r))
-                  if e is not None]
-        return bool(checks) and all(math.isfinite(s) and s > e for s, e in checks)
+    def _fuse(plan: _Plan, scorer: Scorer, pose: Pose, uncertainty: tuple, coarse: Pose, result: RefineResult):
+        """The accepted ``pose`` fused with the coarse pose of known expected error (``trust.fuse_with_prior``):
+        (pose, its cost at the judging size, (covariance, sigma_t, sigma_r_deg)); sets ``result.fused``, or
+        ``result.rejected`` to ``PRIOR_MORE_PRECISE`` when the fusion's cost is not below the coarse pose's (never
+        worse in cost) or the refined pose's uncertainty is unbounded (the prior is then the more precise)."""
+        cov = uncertainty[0]
+        if not np.all(np.isfinite(cov)):
+            result.rejected = PRIOR_MORE_PRECISE
+            return pose, math.nan, None
+        fused, post = fuse_with_prior(pose, cov, coarse, plan.prior_t, plan.prior_r)
+        cost = float(scorer([fused])[0])
+        logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g",
+                     result.name, plan.prior_t, plan.prior_r, cost, result.cost_initial)
+        if not cost < result.cost_initial:
+            result.rejected = PRIOR_MORE_PRECISE
+            return pose, math.nan, None
+        result.fused = True
+        return fused, cost, (post, *sigmas(post))
 
     def _working_set(self, plan: _Plan, coarse: Pose):
         """The renderer the search uses: a :class:`WorkingSet` that follows the poses scored (region radius

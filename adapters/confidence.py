@@ -15,12 +15,12 @@ region of most counts: on the real snow photos with 18 priors drawn from ACE's 7
 of 18 (seeds 300-302) the region kept it (0 worse instead of 1), at margins 1.0 and 1.5, not 2.0.
 
 :func:`inlier_prior_error` gives the bin's median error, the prior's expected error (``Refiner.refine``'s
-``prior_error``): a refined pose whose own uncertainty exceeds it in translation and in rotation is less precise
-than the prior, which is kept. This is what stops an imperfect map's drift on confident poses: on the real snow
-photos with the 18 ACE-shaped priors and their counts (``benchmarks/trust.py``, row "ACE-shaped, ACE's
-inliers") 0 made worse instead of 1 (recall 5/2/1 cm 100/94/78, the priors', instead of 100/89/83), on lego 1
-instead of 2 (recall at 1 cm 67 instead of 44), the room unchanged. :func:`inlier_trust` gives both as
-``Refiner.refine`` keywords.
+``prior_error``): the refined pose is fused with the prior, each weighted by its uncertainty
+(``refine/trust.py``, ``fuse_with_prior``). This is what stops an imperfect map's drift on confident poses: on the
+real snow photos with the 18 ACE-shaped priors and their counts (``benchmarks/trust.py``, row "ACE-shaped, ACE's
+inliers") 9 improved, 9 unchanged, 0 made worse (without the counts 6 / 11 / 1), recall 5/2/1 cm 100/94/83 (the
+priors' 100/94/78); on lego 9 / 9 / 0 (without: 7 / 9 / 2; recall at 1 cm 67 instead of 44); on the room
+7 / 11 / 0 either way. :func:`inlier_trust` gives both as ``Refiner.refine`` keywords.
 
 Errors scale with the scene: the shift is measured at 7-Scenes' typical depth (2 m) and given as a fraction of
 the query's median depth (``Refiner.refine``'s ``max_shift_depth``, which the refiner multiplies by the depth it

@@ -296,7 +296,7 @@ class Refiner:
         cfg = self.config
         if cfg.gradient_first and cfg.search and cfg.polishes and cfg.acceptance == "trust":
             self._attempt(plan, renderer, scorer, img, coarse_pose, result, search=False)
-            # a prior more precise than the minimum near it is kept: the search cannot make that valley sharper
+            # a prior more precise than the fusion near it is kept: the search cannot make that valley sharper
             if (result.accepted or result.rejected == PRIOR_MORE_PRECISE
                     or (result.assessment is not None and settled(result.assessment))):
                 result.route = "gradient"

@@ -231,13 +231,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-rotation", help="trust region: rotation from the prior, e.g. 5deg "
                                           "(default: 8 coarsest steps)")
     r.add_argument("--prior-error", help="the priors' typical (median) camera-centre error, e.g. 2cm (scene "
-                                         "units): a refined pose less precise than that, in translation and in "
-                                         "rotation, is not returned (default: unknown)")
+                                         "units): each refined pose is fused with its prior, weighted by the two "
+                                         "uncertainties (default: unknown)")
     r.add_argument("--prior-rotation-error", help="the priors' typical rotation error, e.g. 1deg (see --prior-error)")
     r.add_argument("--no-inlier-region", action="store_true",
                    help="do not set each query's trust region and expected error from the inlier count of "
-                        "ACE/GLACE pose files (default: a confident pose gets a tight region, and is kept when "
-                        "the refined pose is less precise than it)")
+                        "ACE/GLACE pose files (default: a confident pose gets a tight region, and the refined "
+                        "pose is fused with it by the count's expected error)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=int, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

@@ -8,6 +8,11 @@ Run it after ``localize_sfm.main(...)`` and before ``evaluate(...)`` in a pipeli
 
 or from the shell: ``python -m hgsloc_plugin.hloc_step --scene S.ply --queries Q.txt --results R.txt
 --image_dir DIR --output OUT.txt`` (``python -m hgsloc_plugin.adapters.hloc`` is the same).
+
+hloc's results file carries no per-pose confidence; when the localizer's typical (median) error is known, give it
+(``RefineConfig(prior_error=..., prior_error_deg=...)``, or ``--prior_error 2cm --prior_rotation_error 1deg``):
+each refined pose is then fused with its prior (``refine/trust.py``), which keeps a precise prior where the map's
+cost minimum drifts off the truth.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2."""
+    from .cli import parse_angle, parse_length
     from .refine import RefineConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -49,11 +55,19 @@ def cli(argv=None) -> int:
     ap.add_argument("--config", default="default")
     ap.add_argument("--limit", type=int)
     ap.add_argument("--allow_distortion", action="store_true")
+    ap.add_argument("--prior_error", help="the localizer's typical (median) camera-centre error, e.g. 2cm: each "
+                                          "refined pose is fused with its prior (default: unknown)")
+    ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     try:
-        main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config), a.limit,
-             allow_distortion=a.allow_distortion)
+        overrides = {}
+        if a.prior_error is not None:
+            overrides["prior_error"] = parse_length(a.prior_error, "--prior_error")
+        if a.prior_rotation_error is not None:
+            overrides["prior_error_deg"] = parse_angle(a.prior_rotation_error, "--prior_rotation_error")
+        main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
+             a.limit, allow_distortion=a.allow_distortion)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"hloc step: error: {exc}", file=sys.stderr)
         return 2

@@ -138,6 +138,22 @@ def test_hloc_step(tiny_case, tmp_path):
                     hp.RefineConfig.preset("fast"), limit=1)
     pf = read_poses(out)
     assert pf.dialect == "hloc" and list(pf) == list(read_poses(res))
+    # from the shell, as a pipeline script runs it, with the localizer's typical error declared: each refined pose
+    # is fused with its prior and the report records the error; a bad value exits 2 naming the flag, writes nothing
+    base = [sys.executable, "-m", "hgsloc_plugin.hloc_step", "--scene", str(d / "scene.ply"), "--queries", str(q),
+            "--results", str(res), "--image_dir", str(d / "images"), "--config", "fast", "--limit", "2"]
+    shell_out = tmp_path / "shell_refined.txt"
+    run = subprocess.run(base + ["--output", str(shell_out), "--prior_error", "5cm", "--prior_rotation_error", "2deg"],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    rep = json.loads(shell_out.with_name(shell_out.name + ".json").read_text())
+    assert rep["config"]["prior_error"] == pytest.approx(0.05) and rep["config"]["prior_error_deg"] == 2.0
+    entries = list(rep["queries"].values())
+    assert len(entries) == 2 and rep["totals"]["accepted"] >= 1
+    assert all(e["fused"] == e["accepted"] and e["prior_error"] == pytest.approx(0.05) for e in entries)
+    bad = subprocess.run(base + ["--output", str(tmp_path / "bad.txt"), "--prior_error", "5 parsecs"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "--prior_error" in bad.stderr and not (tmp_path / "bad.txt").exists()
 
 
 def test_demo_runs_and_improves(tmp_path):

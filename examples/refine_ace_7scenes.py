@@ -6,6 +6,10 @@ Usage:
 
 Expects ``<maps>/<scene>/point_cloud.ply`` (trained in the SfM pGT frame), ``<dataset>/<scene>/test`` with the
 query images (``seq-XX/frame-XXXXXX.color.png``), and ``<poses-root>/<scene>/{ace.txt,pgt_sfm_test.txt}``.
+
+ACE's file gives each pose's expected error (its inlier count). A localizer without a per-pose confidence can be
+given its typical error, e.g. Marepo's published 7-Scenes median against the SfM pGT (``../shared/docs/PEERS.md``:
+``--prior-error 2.9cm --prior-rotation-error 1.04deg``); each refined pose is then fused with its prior.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from pathlib import Path
 
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.intrinsics import from_pgt
+from hgsloc_plugin.cli import parse_angle, parse_length
 from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
 from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine import RefineConfig
@@ -32,14 +37,25 @@ def main(localizer: str = "ace") -> None:
     ap.add_argument("--scenes", nargs="+", default=SCENES)
     ap.add_argument("--config", default="default")
     ap.add_argument("--limit", type=int)
+    ap.add_argument("--prior-error", help="the localizer's typical camera-centre error, e.g. 2.9cm (default: unknown)")
+    ap.add_argument("--prior-rotation-error", help="its typical rotation error, e.g. 1.04deg")
     a = ap.parse_args()
+    overrides = {}
+    try:
+        if a.prior_error is not None:
+            overrides["prior_error"] = parse_length(a.prior_error, "--prior-error")
+        if a.prior_rotation_error is not None:
+            overrides["prior_error_deg"] = parse_angle(a.prior_rotation_error, "--prior-rotation-error")
+        config = RefineConfig.preset(a.config, **overrides)
+    except ValueError as exc:
+        ap.error(str(exc))
     before, after = [], []
     for scene in a.scenes:
         coarse = a.poses_root / scene / f"{localizer}.txt"
         gt = a.poses_root / scene / "pgt_sfm_test.txt"
         out = a.out / scene / f"{localizer}_refined.txt"
         refine_pose_file(a.maps / scene / "point_cloud.ply", coarse, a.dataset / scene / "test", from_pgt(gt), out,
-                         config=RefineConfig.preset(a.config), limit=a.limit, gt_variant="sfm")
+                         config=config, limit=a.limit, gt_variant="sfm")
         before.append(evaluate(read_poses(coarse), read_poses(gt)))
         after.append(evaluate(read_poses(out), read_poses(gt)))
         print(f"{scene}: {before[-1]['median_translation_cm']:.2f} cm -> {after[-1]['median_translation_cm']:.2f} cm")

@@ -220,3 +220,29 @@ def test_ace_file_inlier_counts_set_each_query_region(tmp_path, room):
     assert explicit["q0.png"]["max_shift"] == 0.2 and explicit["q0.png"]["prior_error_deg"] == 3.0
     assert explicit["q0.png"]["max_rotation_deg"] == pytest.approx(inlier_region(3700.0)[1])
     assert explicit["q0.png"]["prior_error"] == pytest.approx(inlier_prior_error(3700.0)[0] * depth)
+
+
+def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
+    """Diagonal case by hand: the prior 1 rad-equivalent off along one rotation axis and 1 unit along one shift
+    axis, the refinement's variance there a, the prior's s^2 = (PRIOR_SPREAD * error)^2: the fused offset is
+    xp * a / (a + s^2) per axis and the posterior variance a s^2 / (a + s^2). A refinement with an unbounded
+    covariance (singular Hessian) leaves the prior of known error, "prior more precise"."""
+    from types import SimpleNamespace
+
+    from hgsloc_plugin.refine.refiner import PRIOR_MORE_PRECISE, Refiner, RefineResult
+    from hgsloc_plugin.refine.trust import PRIOR_SPREAD, fuse_with_prior
+
+    pose = hp.Pose.identity()
+    prior = pose.perturbed_in_camera([0.0, 0.02, 0.0], [0.0, 0.0, 0.05])
+    a = np.array([1e-4, 4e-4, 9e-4, 1e-3, 4e-3, 2.5e-3])
+    err_t, err_deg = 0.04, 0.8
+    fused, post = fuse_with_prior(pose, np.diag(a), prior, err_t, err_deg)
+    s2 = np.r_[[(PRIOR_SPREAD * math.radians(err_deg)) ** 2] * 3, [(PRIOR_SPREAD * err_t) ** 2] * 3]
+    expect = np.r_[0.0, 0.02, 0.0, 0.0, 0.0, 0.05] * a / (a + s2)
+    assert _close(fused, pose.perturbed_in_camera(expect[:3], expect[3:]), 1e-12)
+    np.testing.assert_allclose(np.diag(post), a * s2 / (a + s2), rtol=1e-9)
+    np.testing.assert_allclose(post - np.diag(np.diag(post)), 0.0, atol=1e-15)
+    result = RefineResult(pose=prior, initial_pose=prior)
+    out = Refiner._fuse(SimpleNamespace(prior_t=err_t, prior_r=err_deg), None, pose,
+                        (np.full((6, 6), math.inf), math.inf, math.inf), prior, result)
+    assert result.rejected == PRIOR_MORE_PRECISE and not result.fused and out[2] is None

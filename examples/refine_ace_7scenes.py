@@ -19,7 +19,7 @@ from pathlib import Path
 
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.intrinsics import from_pgt
-from hgsloc_plugin.cli import parse_angle, parse_length
+from hgsloc_plugin.cli import prior_error_overrides
 from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
 from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine import RefineConfig
@@ -40,13 +40,8 @@ def main(localizer: str = "ace") -> None:
     ap.add_argument("--prior-error", help="the localizer's typical camera-centre error, e.g. 2.9cm (default: unknown)")
     ap.add_argument("--prior-rotation-error", help="its typical rotation error, e.g. 1.04deg")
     a = ap.parse_args()
-    overrides = {}
     try:
-        if a.prior_error is not None:
-            overrides["prior_error"] = parse_length(a.prior_error, "--prior-error")
-        if a.prior_rotation_error is not None:
-            overrides["prior_error_deg"] = parse_angle(a.prior_rotation_error, "--prior-rotation-error")
-        config = RefineConfig.preset(a.config, **overrides)
+        config = RefineConfig.preset(a.config, **prior_error_overrides(a.prior_error, a.prior_rotation_error))
     except ValueError as exc:
         ap.error(str(exc))
     before, after = [], []

@@ -45,10 +45,7 @@ def cmd_refine(args) -> int:
         overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
     if args.max_rotation is not None:
         overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
-    if args.prior_error is not None:
-        overrides["prior_error"] = parse_length(args.prior_error, "--prior-error")
-    if args.prior_rotation_error is not None:
-        overrides["prior_error_deg"] = parse_angle(args.prior_rotation_error, "--prior-rotation-error")
+    overrides.update(prior_error_overrides(args.prior_error, args.prior_rotation_error))
     if args.no_polish:
         overrides["polish"] = False
     config = RefineConfig.preset(args.config, **overrides)
@@ -107,6 +104,19 @@ def parse_length(text: str, flag: str = "--max-shift") -> float:
 def parse_angle(text: str, flag: str = "--max-rotation") -> float:
     """'5deg', '5', '0.1rad' -> degrees."""
     return _with_unit(text, _ANGLE_UNITS, flag)
+
+
+def prior_error_overrides(error: str | None, rotation_error: str | None,
+                          flags: tuple[str, str] = ("--prior-error", "--prior-rotation-error")) -> dict:
+    """``RefineConfig`` fields from the priors' typical-error flags ('2cm', '1deg'; None: not given), for every
+    command line that takes them (``hgsloc refine``, the hloc step, the examples); a bad value raises ValueError
+    naming its flag (``flags``)."""
+    out = {}
+    if error is not None:
+        out["prior_error"] = parse_length(error, flags[0])
+    if rotation_error is not None:
+        out["prior_error_deg"] = parse_angle(rotation_error, flags[1])
+    return out
 
 
 def _check(args, sample: int, figures=None):

@@ -43,7 +43,7 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2."""
-    from .cli import parse_angle, parse_length
+    from .cli import prior_error_overrides
     from .refine import RefineConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -61,11 +61,8 @@ def cli(argv=None) -> int:
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     try:
-        overrides = {}
-        if a.prior_error is not None:
-            overrides["prior_error"] = parse_length(a.prior_error, "--prior_error")
-        if a.prior_rotation_error is not None:
-            overrides["prior_error_deg"] = parse_angle(a.prior_rotation_error, "--prior_rotation_error")
+        overrides = prior_error_overrides(a.prior_error, a.prior_rotation_error,
+                                          ("--prior_error", "--prior_rotation_error"))
         main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
              a.limit, allow_distortion=a.allow_distortion)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:

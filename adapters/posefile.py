@@ -1,7 +1,9 @@
 """Pose files of the localizers, read losslessly and written back in the same dialect (CONVENTIONS §2).
 
 A :class:`PoseFile` keeps every line of the input: records (name, pose, extra columns) and any other line
-(Marepo's spilled error tensors), so that writing it back with no pose changed gives the same bytes.
+(Marepo's spilled error tensors), so that writing it back with no pose changed gives the same bytes (CRLF
+line endings included). A line that starts with an image name but is no whole record is an error naming it
+(a lost query, even in raw Marepo output); a skipped line that is not a printed tensor is named in a warning.
 Failed priors (non-finite values or a zero quaternion, as ACE writes for an exact identity) are kept with
 ``pose = None`` and passed through unchanged.
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,6 +80,30 @@ def _looks_like_record(tokens: list[str]) -> bool:
             and all(_is_float(t) and math.isfinite(float(t)) for t in tokens[1:8]))
 
 
+def _record_numbers(tokens: list[str]) -> bool:
+    """An image name and 7 numbers, finite or not (a non-finite one makes a failed estimate, not junk)."""
+    return len(tokens) >= 8 and tokens[0].lower().endswith(IMAGE_EXT) and all(_is_float(t) for t in tokens[1:8])
+
+
+_TENSOR_WORDS = re.compile(r"tensor\(|device='[^']*'|dtype=torch\.\w+|grad_fn=<\w+>|\bnan\b|\binf\b")
+_TENSOR_CHARS = set("0123456789.,eE+-[]() \t\r")
+
+
+def _is_tensor_fragment(line: str) -> bool:
+    """Part of a printed torch tensor (what Marepo's test script spills after its records, wrapped)."""
+    return set(_TENSOR_WORDS.sub("", line)) <= _TENSOR_CHARS
+
+
+def _damaged_record(path: Path, line_no: int, tokens: list[str]) -> ValueError:
+    """The error for a line that starts with an image name but does not hold a whole record."""
+    if len(tokens) < 8:
+        what = f"{len(tokens)} columns, a record has at least 8 (name qw qx qy qz tx ty tz)"
+    else:
+        bad = next(t for t in tokens[1:8] if not _is_float(t))
+        what = f"not a number: {bad!r}"
+    return ValueError(f"{path}:{line_no}: damaged pose record for {tokens[0]}: {what}")
+
+
 def _make_pose(tokens: list[str], dialect: str = "hloc") -> Pose | None:
     vals = [float(t) for t in tokens[1:8]]
     try:
@@ -90,7 +117,7 @@ def _make_pose(tokens: list[str], dialect: str = "hloc") -> Pose | None:
 
 def _has_tensor_tail(tokens: list[str]) -> bool:
     """A Marepo record followed by its batch's error tensors: 8 pose tokens, then non-numeric text."""
-    return len(tokens) > 8 and _looks_like_record(tokens) and not _is_float(tokens[8])
+    return len(tokens) > 8 and _record_numbers(tokens) and not _is_float(tokens[8])
 
 
 def detect_dialect(path: Path, lines: list[str]) -> str:
@@ -104,13 +131,15 @@ def detect_dialect(path: Path, lines: list[str]) -> str:
         return "cambridge"
     counts = set()
     junk = False
-    for ln in lines:
+    for i, ln in enumerate(lines, 1):
         tok = ln.split()
         if not tok or tok[0].startswith("#"):
             continue
         if _has_tensor_tail(tok):
             counts.add(8)
             junk = True
+        elif tok[0].lower().endswith(IMAGE_EXT) and not _record_numbers(tok):
+            raise _damaged_record(path, i, tok)  # a truncated line is a lost query, not a Marepo tensor
         elif _looks_like_record(tok) or (len(tok) in (8, 9, 11) and tok[0].lower().endswith(IMAGE_EXT)):
             counts.add(len(tok))
         else:
@@ -148,7 +177,7 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
         from .trainer import read_cameras_json
 
         return read_cameras_json(path)
-    text = path.read_text(encoding="utf-8", errors="strict")
+    text = path.read_bytes().decode("utf-8", errors="strict")  # not read_text: it would turn CRLF into LF
     final_newline = text.endswith("\n")
     lines = text.split("\n")
     if final_newline:
@@ -158,13 +187,17 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
     if dialect not in DIALECTS:
         raise ValueError(f"unknown dialect {dialect!r}; choose from {DIALECTS}")
     width = COLUMNS[dialect]
-    records, seen = [], {}
+    records, seen, strays = [], {}, []
     for i, ln in enumerate(lines, 1):
         tok = ln.split()
         if not tok or tok[0].startswith("#") or (dialect == "cambridge" and i <= 3):
             continue
         if dialect == "marepo":
-            if not _looks_like_record(tok):
+            if not _record_numbers(tok):
+                if tok[0].lower().endswith(IMAGE_EXT):
+                    raise _damaged_record(path, i, tok)
+                if not _is_tensor_fragment(ln):
+                    strays.append(i)
                 continue  # wrapped error tensors: not a record (CONVENTIONS §2, robust parse)
         else:
             if len(tok) != width:
@@ -182,6 +215,11 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
         records.append(Record(i, ln, tok[0], pose, tok))
     if not records:
         raise ValueError(f"{path}: no pose records found")
+    for i in strays[:3]:  # skipped per the robust rule, but not what Marepo spills: say so
+        logger.warning("%s:%d: neither a pose record nor a printed tensor, skipped (read as Marepo output): %r",
+                       path, i, lines[i - 1].strip()[:60])
+    if len(strays) > 3:
+        logger.warning("%s: %d more such lines skipped", path, len(strays) - 3)
     return PoseFile(path, dialect, lines, records, final_newline)
 
 
@@ -206,7 +244,8 @@ def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
     for i, ln in enumerate(like.lines, 1):
         r = by_line.get(i)
         if r is not None and r.name in poses and poses[r.name] is not None and poses[r.name] != r.pose:
-            out.append(" ".join([r.name] + format_pose_tokens(poses[r.name], like.dialect) + r.tokens[8:]))
+            new = " ".join([r.name] + format_pose_tokens(poses[r.name], like.dialect) + r.tokens[8:])
+            out.append(new + "\r" if ln.endswith("\r") else new)  # CRLF files stay CRLF
         else:
             out.append(ln)
     text = "\n".join(out) + ("\n" if like.final_newline else "")

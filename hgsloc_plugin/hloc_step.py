@@ -32,12 +32,13 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
          limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False) -> Path:
     """Refine hloc's ``results`` with the 3DGS ``scene``; intrinsics from ``queries`` (with intrinsics).
 
-    Returns the path of the refined results (HLoc dialect), with a JSON report beside it.
+    Returns the path of the refined results (HLoc dialect), with a JSON report beside it. ``results`` is read as
+    hloc writes it (``name qw qx qy qz tx ty tz`` per line): any other line is an error naming it.
     """
     logger.info("Refining %s with %s", results, scene)
     refine_pose_file(scene, Path(results), Path(image_dir),
                      from_query_list(queries, allow_distortion=allow_distortion), Path(output),
-                     config=config, limit=limit, gt_variant=gt_variant)
+                     config=config, limit=limit, gt_variant=gt_variant, dialect="hloc")
     return Path(output)
 
 

@@ -131,6 +131,42 @@ def test_raw_marepo_output_is_read_per_the_robust_rule(tmp_path):
     assert moved.read_text().splitlines()[1:3] == text.splitlines()[1:3]  # wrapped lines kept verbatim
 
 
+def test_raw_marepo_lines_that_are_neither_records_nor_tensors(tmp_path, caplog):
+    """A truncated record is a lost query: an error naming its line, in raw Marepo output and in an hloc-shaped
+    file alike; a stray line that is no printed tensor is skipped per the robust rule but named on stderr; a
+    record with a non-finite value is a failed estimate, not a skipped line."""
+    raw = ("a.png 1 0 0 0 0 0 0 tensor([0.1, nan,\n"
+           "        inf, 0.2], device='cuda:0') tensor([1.0e-02, 2.0e-02], dtype=torch.float64)\n")
+    p = tmp_path / "raw.txt"
+    p.write_text(raw + "b.png 1 0 0 0 nan 0 0 tensor([0.1])\n")
+    with caplog.at_level("WARNING", logger="hgsloc_plugin"):
+        pf = read_poses(p)
+    assert pf.dialect == "marepo" and list(pf) == ["a.png", "b.png"] and pf["b.png"] is None
+    assert [r.getMessage() for r in caplog.records if "raw.txt:3" in r.getMessage()]  # the failed estimate
+    assert not [r for r in caplog.records if "printed tensor" in r.getMessage()]  # tensors are not strays
+    for text, line in ((raw + "b.png 1 0 0\n", 3), ("a.png 1 0 0 0 0 0 0\nb.png 1 0 0 0 0\n", 2),
+                       ("a.png 1 0 0 0 0 0 0 tensor([1])\nb.png 1 0 0 0 x 0 0 tensor([1])\n", 2)):
+        p.write_text(text)
+        with pytest.raises(ValueError, match=rf"raw.txt:{line}: damaged pose record for b.png"):
+            read_poses(p)
+    p.write_text("a.png 1 0 0 0 0 0 0\ngarbage line here\nb.png 1 0 0 0 1 1 1\n")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hgsloc_plugin"):
+        pf = read_poses(p)
+    assert list(pf) == ["a.png", "b.png"]
+    assert any("raw.txt:2" in r.getMessage() and "garbage" in r.getMessage() for r in caplog.records)
+
+
+def test_crlf_file_stays_crlf(tmp_path):
+    p = tmp_path / "crlf.txt"
+    p.write_bytes(b"a.png 1 0 0 0 0 0 0\r\n# note\r\nb.png 1 0 0 0 1 1 1\r\n")
+    pf = read_poses(p)
+    assert write_poses(tmp_path / "same.txt", dict(pf), like=pf).read_bytes() == p.read_bytes()
+    moved = write_poses(tmp_path / "o.txt", {"a.png": Pose([1, 0, 0, 0], [0.5, 0, 0])}, like=pf).read_bytes()
+    assert moved.count(b"\r\n") == 3 and moved.count(b"\n") == 3
+    assert read_poses(tmp_path / "o.txt")["a.png"] == Pose([1, 0, 0, 0], [0.5, 0, 0])
+
+
 def test_clean_marepo_with_junk_lines(tmp_path):
     p2 = tmp_path / "clean.txt"
     p2.write_text("a.png 1 0 0 0 0 0 0\nwrapped 0.1 0.2\nb.png 1 0 0 0 1 1 1\n")

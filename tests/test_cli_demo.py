@@ -154,6 +154,13 @@ def test_hloc_step(tiny_case, tmp_path):
     bad = subprocess.run(base + ["--output", str(tmp_path / "bad.txt"), "--prior_error", "5 parsecs"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "--prior_error" in bad.stderr and not (tmp_path / "bad.txt").exists()
+    # a damaged line in hloc's results is an error naming it (not a line skipped as if the file were Marepo's)
+    damaged = tmp_path / "damaged.txt"
+    damaged.write_text(res.read_text() + "garbage line here\n")
+    run = subprocess.run(base + ["--results", str(damaged), "--output", str(tmp_path / "d.txt")],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "damaged.txt:4: expected 8 columns" in run.stderr, run.stderr
+    assert not (tmp_path / "d.txt").exists()
 
 
 def test_demo_runs_and_improves(tmp_path):

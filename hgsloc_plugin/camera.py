@@ -9,6 +9,12 @@ import numpy as np
 
 _DISTORTED = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
               "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV"}
+#: COLMAP's parameters of each model, in its order (``colmap/src/colmap/sensor/models.h``)
+_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
+           "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
+           "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6", "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4",
+           "SIMPLE_RADIAL_FISHEYE": "f cx cy k", "RADIAL_FISHEYE": "f cx cy k1 k2",
+           "THIN_PRISM_FISHEYE": "fx fy cx cy k1 k2 p1 p2 k3 k4 sx1 sy1", "FOV": "fx fy cx cy omega"}
 
 
 @dataclass(frozen=True)
@@ -59,6 +65,9 @@ class Camera:
         """
         model = str(model).upper()
         p = [float(x) for x in params]
+        if model in _PARAMS and len(p) != len(_PARAMS[model].split()):
+            raise ValueError(f"camera model {model} takes {len(_PARAMS[model].split())} parameters "
+                             f"({_PARAMS[model]}), got {len(p)}")
         if model == "SIMPLE_PINHOLE":
             return cls(width, height, p[0], p[0], p[1], p[2])
         if model == "PINHOLE":

@@ -237,6 +237,9 @@ def test_intrinsics_sources(tmp_path):
     q.write_text("x.png SIMPLE_RADIAL 640 480 525 320 240 0.1\n")
     with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:1: .*distortion"):
         parse_query_list(q)
+    q.write_text("x.png SIMPLE_PINHOLE 640 480 525 320 240\ny.png SIMPLE_PINHOLE 640 480 525 320\n")
+    with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:2: camera model SIMPLE_PINHOLE takes 3"):
+        parse_query_list(q)
 
 
 def test_cambridge_dialect_centre_and_round_trip(tmp_path):

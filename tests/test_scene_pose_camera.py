@@ -168,6 +168,11 @@ def test_camera_scaling_and_colmap_models():
     with pytest.raises(ValueError, match="distortion"):
         Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01])
     assert Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01], allow_distortion=True).fx == 500
+    # a parameter short or over is named with the model's parameter list (it was an IndexError or went unseen)
+    with pytest.raises(ValueError, match=r"SIMPLE_PINHOLE takes 3 parameters \(f cx cy\), got 2"):
+        Camera.from_colmap("SIMPLE_PINHOLE", 640, 480, [500.0, 320.0])
+    with pytest.raises(ValueError, match=r"PINHOLE takes 4 parameters \(fx fy cx cy\), got 5"):
+        Camera.from_colmap("PINHOLE", 640, 480, [500.0, 500.0, 320.0, 240.0, 0.1])
     with pytest.raises(ValueError):
         Camera(0, 10, 1.0, 1.0, 0.0, 0.0)
 

@@ -156,9 +156,25 @@ def cmd_evaluate(args) -> int:
 
     if len(args.poses) != len(args.gt):
         raise ValueError("give one --gt per --poses (one pair per scene)")
+    from .adapters.names import canonical_name
+
     results = []
     for p, g in zip(args.poses, args.gt):
-        r = evaluate(read_poses(p), read_poses(g))
+        est, gt = read_poses(p), read_poses(g)
+        est_keys, gt_keys = {canonical_name(n): n for n in est}, {canonical_name(n): n for n in gt}
+        if not est_keys.keys() & gt_keys.keys():  # wrong pair of files, or a name style the matcher misses
+            raise ValueError(f"{p}: none of its {len(est)} estimates names an image of {g} (e.g. "
+                             f"{next(iter(est))!r} vs {next(iter(gt))!r}): not the ground truth of these poses?")
+        missing = [n for k, n in gt_keys.items() if k not in est_keys]
+        extra = [n for k, n in est_keys.items() if k not in gt_keys]
+        if missing:
+            logging.getLogger("hgsloc_plugin").warning("%s: %d of the %d images of %s have no estimate (counted "
+                                                       "as failed), e.g. %r", p, len(missing), len(gt), g,
+                                                       missing[0])
+        if extra:
+            logging.getLogger("hgsloc_plugin").warning("%s: %d estimates name no image of %s (not counted), e.g. "
+                                                       "%r", p, len(extra), g, extra[0])
+        r = evaluate(est, gt)
         r.pop("errors")
         r["poses"], r["gt"] = p, g
         results.append(r)

@@ -212,6 +212,27 @@ def test_cli_json_stdout_is_pure_and_strict(tiny_case, tmp_path):  # noqa: F811
     assert "Taichi" not in p.stdout and f"{bad.name}:1" in p.stderr
 
 
+def test_cli_evaluate_names_unmatched_images(tiny_case, tmp_path):  # noqa: F811
+    """Estimates of other images than the ground truth's are a user error, not a silent 0 % recall; a partial
+    match is evaluated (missing images count as failed) with both kinds of unmatched name on stderr."""
+    d = tiny_case
+    gt = d / "gt.txt"
+    lines = gt.read_text().splitlines()
+    other = tmp_path / "other.txt"
+    other.write_text("".join(f"elsewhere_{k}.png 1 0 0 0 0 0 0\n" for k in range(2)))
+    p = _run_cli(["evaluate", "--poses", str(other), "--gt", str(gt), "--json"])
+    assert p.returncode == 2 and p.stdout == "" and "none of its 2 estimates" in p.stderr, p.stderr
+    assert "elsewhere_0.png" in p.stderr and lines[0].split()[0] in p.stderr
+    part = tmp_path / "part.txt"
+    part.write_text("\n".join(lines[:2] + ["stray.png 1 0 0 0 0 0 0"]) + "\n")
+    p = _run_cli(["evaluate", "--poses", str(part), "--gt", str(gt), "--json"])
+    assert p.returncode == 0, p.stderr
+    rep = json.loads(p.stdout)
+    assert rep["n"] == 3 and rep["missing"] == 1 and rep["recall"]["1cm1deg"] == pytest.approx(2 / 3)
+    assert f"1 of the 3 images of {gt}" in p.stderr and lines[2].split()[0] in p.stderr
+    assert "1 estimates name no image" in p.stderr and "stray.png" in p.stderr
+
+
 def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path):  # noqa: F811
     d = tiny_case
     p = _run_cli(["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images",

@@ -19,7 +19,8 @@ def load_image(image, *, name: str = "image", background=(0.0, 0.0, 0.0)) -> np.
     """Any supported query image as float32 [H, W, 3] in [0, 1].
 
     Accepts a path (PNG/JPEG; RGBA is composited on ``background``, the map's, unless fully opaque), a numpy array
-    [H, W, 3] (uint8 or float in [0, 1]) or a torch tensor [3, H, W].
+    [H, W, C] or a torch tensor [C, H, W] (uint8, or float in [0, 1]) with C = 3, 1 or 4 (grey is repeated, RGBA
+    composited on ``background`` as for a file; a 2-D array or tensor [H, W] is grey).
     """
     if isinstance(image, (str, Path)):
         p = Path(image)
@@ -28,27 +29,39 @@ def load_image(image, *, name: str = "image", background=(0.0, 0.0, 0.0)) -> np.
         with Image.open(p) as im:
             im = im.convert("RGBA") if im.mode in ("RGBA", "LA", "P") else im.convert("RGB")
             a = np.asarray(im, dtype=np.float32) / 255.0
-        if a.shape[2] == 4:
-            a = a[..., :3] * a[..., 3:4] + (1.0 - a[..., 3:4]) * np.asarray(background, np.float32)
-        return np.ascontiguousarray(a)
+        return _to_rgb(a, background)
     torch = sys.modules.get("torch")  # a tensor exists only when the caller imported torch
     if torch is not None and isinstance(image, torch.Tensor):
         t = image.detach().cpu()
-        if t.ndim != 3 or t.shape[0] != 3:
-            raise ValueError(f"{name}: a torch image must be [3, H, W], got {tuple(t.shape)}")
-        a = t.permute(1, 2, 0).float().numpy()
+        t = t[None] if t.ndim == 2 else t
+        if t.ndim != 3 or t.shape[0] not in (1, 3, 4):
+            raise ValueError(f"{name}: a torch image must be [3, H, W] (or [1 | 4, H, W], [H, W]), "
+                             f"got {tuple(image.shape)}")
+        a = t.permute(1, 2, 0).numpy()
     else:
         a = np.asarray(image)
-        if a.ndim != 3 or a.shape[2] != 3:
-            raise ValueError(f"{name}: a numpy image must be [H, W, 3], got {a.shape}")
+        a = a[..., None] if a.ndim == 2 else a
+        if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+            raise ValueError(f"{name}: a numpy image must be [H, W, 3] (or [H, W, 1 | 4], [H, W]), "
+                             f"got {np.asarray(image).shape}")
     if a.dtype == np.uint8:
-        return np.ascontiguousarray(a, dtype=np.float32) / 255.0
+        return _to_rgb(np.asarray(a, dtype=np.float32) / 255.0, background)
     a = np.ascontiguousarray(a, dtype=np.float32)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name}: image has non-finite values")
     if a.min() < -0.05 or a.max() > 1.5:  # renderings may overshoot 1 slightly; 0-255 floats are an error
         raise ValueError(f"{name}: float images must be in [0, 1] (got range {a.min():.3g}..{a.max():.3g})")
-    return np.clip(a, 0.0, 1.0)
+    return _to_rgb(np.clip(a, 0.0, 1.0), background)
+
+
+def _to_rgb(a: np.ndarray, background) -> np.ndarray:
+    """[H, W, 1 | 3 | 4] float in [0, 1] -> contiguous float32 [H, W, 3]: grey repeated, RGBA composited on
+    ``background``."""
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    elif a.shape[2] == 4:
+        a = a[..., :3] * a[..., 3:4] + (1.0 - a[..., 3:4]) * np.asarray(background, np.float32)
+    return np.ascontiguousarray(a, dtype=np.float32)
 
 
 def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -211,3 +211,34 @@ def test_package_and_query_loading_do_not_import_torch(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert p.stdout.split() == ["(15,", "20,", "3)", "False"]
+
+
+def test_query_arrays_in_every_layout_a_file_has(tmp_path):
+    """Grey and RGBA arrays and tensors load as the same image as the file of that mode (grey repeated, RGBA
+    composited on the map's background), uint8 and float alike; other layouts are refused naming the shape."""
+    import torch
+    from PIL import Image
+
+    from hgsloc_plugin.image import load_image
+
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, size=(6, 5, 4), dtype=np.uint8)
+    bg = (0.25, 0.5, 1.0)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
+    Image.fromarray(rgba[..., 0], "L").save(tmp_path / "g.png")
+    from_file = load_image(tmp_path / "a.png", background=bg)
+    grey_file = load_image(tmp_path / "g.png")
+    alpha = rgba[..., 3:4] / 255.0
+    expect = rgba[..., :3] / 255.0 * alpha + (1 - alpha) * np.array(bg)
+    np.testing.assert_allclose(from_file, expect, atol=1e-6)
+    for arr in (rgba, rgba / 255.0, torch.from_numpy(rgba).permute(2, 0, 1),
+                torch.from_numpy(rgba / 255.0).permute(2, 0, 1)):
+        np.testing.assert_allclose(load_image(arr, background=bg), from_file, atol=1e-6)
+    g = rgba[..., 0]
+    for arr in (g, g[..., None], g / 255.0, torch.from_numpy(g), torch.from_numpy(g)[None]):
+        out = load_image(arr)
+        assert out.shape == (6, 5, 3) and out.dtype == np.float32
+        np.testing.assert_allclose(out, grey_file, atol=1e-6)
+    for bad in (np.zeros((6, 5, 2)), np.zeros((2, 6, 5, 3)), torch.zeros(2, 6, 5)):
+        with pytest.raises(ValueError, match=r"must be \[.*got .*\(.*\)"):
+            load_image(bad, name="q")

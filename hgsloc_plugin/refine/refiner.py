@@ -242,7 +242,8 @@ class Refiner:
         """Refine one query.
 
         Args:
-            image: [H, W, 3] uint8 or float in [0, 1], torch [3, H, W], or a path; its size must match ``camera``.
+            image: [H, W, 3] uint8 or float in [0, 1], torch [3, H, W], or a path (grey and RGBA too, composited
+                on ``RefineConfig.background``: ``image.load_image``); its size must match ``camera``.
             camera: the query's pinhole intrinsics at the image's size.
             coarse_pose: world-to-camera prior.
             max_shift / max_rotation_deg: this query's trust region (camera-centre shift in scene units, rotation

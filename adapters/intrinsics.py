@@ -43,7 +43,7 @@ def parse_query_list(path, *, allow_distortion: bool = False) -> dict[str, Camer
     """HLoc ``queries_with_intrinsics.txt``: ``name MODEL width height params...`` (COLMAP order)."""
     path = Path(path)
     out = {}
-    for i, line in enumerate(path.read_text().splitlines(), 1):
+    for i, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), 1):  # -sig: a BOM is no name
         line = line.strip()
         if not line or line.startswith("#"):
             continue

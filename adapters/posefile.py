@@ -50,6 +50,7 @@ class PoseFile(Mapping):
     lines: list[str]  # every line without its newline
     records: list[Record] = field(default_factory=list)
     final_newline: bool = True
+    bom: bool = False  # the file began with a UTF-8 byte-order mark (written back)
 
     def __post_init__(self) -> None:
         self._by_name = {r.name: r for r in self.records}
@@ -178,6 +179,8 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
 
         return read_cameras_json(path)
     text = path.read_bytes().decode("utf-8", errors="strict")  # not read_text: it would turn CRLF into LF
+    bom = text.startswith("\ufeff")  # Windows editors' mark: not part of the first image name
+    text = text.removeprefix("\ufeff")
     final_newline = text.endswith("\n")
     lines = text.split("\n")
     if final_newline:
@@ -220,7 +223,7 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
                        path, i, lines[i - 1].strip()[:60])
     if len(strays) > 3:
         logger.warning("%s: %d more such lines skipped", path, len(strays) - 3)
-    return PoseFile(path, dialect, lines, records, final_newline)
+    return PoseFile(path, dialect, lines, records, final_newline, bom)
 
 
 def format_pose_tokens(pose: Pose, dialect: str = "hloc") -> list[str]:
@@ -248,6 +251,6 @@ def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
             out.append(new + "\r" if ln.endswith("\r") else new)  # CRLF files stay CRLF
         else:
             out.append(ln)
-    text = "\n".join(out) + ("\n" if like.final_newline else "")
+    text = ("\ufeff" if like.bom else "") + "\n".join(out) + ("\n" if like.final_newline else "")
     atomic_write_bytes(path, text.encode("utf-8"))
     return path

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -165,6 +167,26 @@ def test_crlf_file_stays_crlf(tmp_path):
     moved = write_poses(tmp_path / "o.txt", {"a.png": Pose([1, 0, 0, 0], [0.5, 0, 0])}, like=pf).read_bytes()
     assert moved.count(b"\r\n") == 3 and moved.count(b"\n") == 3
     assert read_poses(tmp_path / "o.txt")["a.png"] == Pose([1, 0, 0, 0], [0.5, 0, 0])
+
+
+def test_byte_order_mark_is_no_part_of_a_name(tmp_path):
+    """A file saved by a Windows editor starts with a UTF-8 BOM: the first image is still found, and the BOM is
+    written back (the file is otherwise byte for byte)."""
+    p = tmp_path / "bom.txt"
+    p.write_bytes("\ufeffa.png 1 0 0 0 0 0 0\r\nb.png 1 0 0 0 1 1 1\r\n".encode())
+    pf = read_poses(p)
+    assert list(pf) == ["a.png", "b.png"] and pf.dialect == "hloc"
+    assert write_poses(tmp_path / "same.txt", dict(pf), like=pf).read_bytes() == p.read_bytes()
+    T = Pose([1, 0, 0, 0], [0.5, 0, 0])
+    moved = write_poses(tmp_path / "o.txt", {"a.png": T}, like=pf).read_bytes()
+    assert moved.startswith("\ufeffa.png 1.0 0.0".encode()) and read_poses(tmp_path / "o.txt")["a.png"] == T
+    q = tmp_path / "queries_with_intrinsics.txt"
+    q.write_bytes("\ufeffa.png SIMPLE_PINHOLE 640 480 525 320 240\n".encode())
+    assert from_query_list(q)("a.png", 640, 480).fx == 525
+    cams = tmp_path / "cameras.json"
+    cams.write_bytes(("\ufeff" + json.dumps([{"id": 0, "img_name": "a", "width": 10, "height": 8, "fx": 5, "fy": 5,
+                                                "position": [0, 0, 1], "rotation": np.eye(3).tolist()}])).encode())
+    assert len(read_poses(cams)) == 1
 
 
 def test_clean_marepo_with_junk_lines(tmp_path):

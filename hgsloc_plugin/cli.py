@@ -151,22 +151,18 @@ def cmd_check(args) -> int:
 
 def cmd_evaluate(args) -> int:
     from .adapters import read_poses
-    from .evaluate import evaluate, mean_over_scenes
+    from .evaluate import evaluate, mean_over_scenes, unmatched
     from .fileio import dumps_json
 
     if len(args.poses) != len(args.gt):
         raise ValueError("give one --gt per --poses (one pair per scene)")
-    from .adapters.names import canonical_name
-
     results = []
     for p, g in zip(args.poses, args.gt):
         est, gt = read_poses(p), read_poses(g)
-        est_keys, gt_keys = {canonical_name(n): n for n in est}, {canonical_name(n): n for n in gt}
-        if not est_keys.keys() & gt_keys.keys():  # wrong pair of files, or a name style the matcher misses
+        missing, extra = unmatched(est, gt)
+        if len(missing) == len(gt):  # wrong pair of files, or a name style the matcher misses
             raise ValueError(f"{p}: none of its {len(est)} estimates names an image of {g} (e.g. "
                              f"{next(iter(est))!r} vs {next(iter(gt))!r}): not the ground truth of these poses?")
-        missing = [n for k, n in gt_keys.items() if k not in est_keys]
-        extra = [n for k, n in est_keys.items() if k not in gt_keys]
         if missing:
             logging.getLogger("hgsloc_plugin").warning("%s: %d of the %d images of %s have no estimate (counted "
                                                        "as failed), e.g. %r", p, len(missing), len(gt), g,

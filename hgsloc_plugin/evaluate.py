@@ -19,6 +19,14 @@ def pose_errors(est: Pose | None, gt: Pose) -> tuple[float, float]:
     return float(np.linalg.norm(est.centre() - gt.centre())), rotation_angle_deg(gt.R, est.R)
 
 
+def unmatched(estimates: Mapping[str, object], gt: Mapping[str, object]) -> tuple[list[str], list[str]]:
+    """(ground-truth names with no estimate, estimate names with no ground truth), matched across name styles."""
+    from .adapters.names import canonical_name
+
+    est_keys, gt_keys = {canonical_name(n): n for n in estimates}, {canonical_name(n): n for n in gt}
+    return ([n for k, n in gt_keys.items() if k not in est_keys], [n for k, n in est_keys.items() if k not in gt_keys])
+
+
 def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, scale_to_m: float = 1.0) -> dict:
     """Errors of ``estimates`` against ``gt``; names are matched across styles (canonical keys).
 

@@ -239,6 +239,8 @@ def test_query_arrays_in_every_layout_a_file_has(tmp_path):
         out = load_image(arr)
         assert out.shape == (6, 5, 3) and out.dtype == np.float32
         np.testing.assert_allclose(out, grey_file, atol=1e-6)
+    half = load_image(torch.from_numpy(rgba / 255.0).permute(2, 0, 1).to(torch.bfloat16), background=bg)
+    np.testing.assert_allclose(half, from_file, atol=1e-2)  # any float tensor, numpy has no bfloat16
     for bad in (np.zeros((6, 5, 2)), np.zeros((2, 6, 5, 3)), torch.zeros(2, 6, 5)):
         with pytest.raises(ValueError, match=r"must be \[.*got .*\(.*\)"):
             load_image(bad, name="q")

@@ -79,6 +79,17 @@ def summary_line(t: dict, out) -> str:
             + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
 
 
+def count_arg(text: str) -> int:
+    """argparse type of a count (``--limit``): an integer >= 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return n
+
+
 _LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
 _ANGLE_UNITS = {"": 1.0, "deg": 1.0, "rad": 57.29577951308232}
 
@@ -261,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "ACE/GLACE pose files (default: a confident pose gets a tight region, and the refined "
                         "pose is fused with it by the count's expected error)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
-    r.add_argument("--limit", type=int, help="refine only the first N queries")
+    r.add_argument("--limit", type=count_arg, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
     r.add_argument("--figures", help="write comparison figures here")
     r.add_argument("--workers", type=int, default=0, help="refine on N local Ray worker processes")
@@ -325,7 +336,8 @@ def main(argv=None) -> int:
         print("hgsloc: interrupted; rerun the same command to resume", file=sys.stderr)
         return 130
     except (ValueError, FileNotFoundError, KeyError, OSError, RuntimeError) as exc:
-        msg = str(exc).strip("'\"") or type(exc).__name__
+        # a KeyError's str() is the repr of its message; other messages may end in a quoted value: keep it
+        msg = (str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)) or type(exc).__name__
         print(f"hgsloc: error: {msg}", file=sys.stderr)
         return 2
 

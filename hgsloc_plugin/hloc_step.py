@@ -44,7 +44,7 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2."""
-    from .cli import prior_error_overrides
+    from .cli import count_arg, prior_error_overrides
     from .refine import RefineConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -54,7 +54,7 @@ def cli(argv=None) -> int:
     ap.add_argument("--image_dir", type=Path, required=True)
     ap.add_argument("--output", type=Path, required=True)
     ap.add_argument("--config", default="default")
-    ap.add_argument("--limit", type=int)
+    ap.add_argument("--limit", type=count_arg)
     ap.add_argument("--allow_distortion", action="store_true")
     ap.add_argument("--prior_error", help="the localizer's typical (median) camera-centre error, e.g. 2cm: each "
                                           "refined pose is fused with its prior (default: unknown)")

@@ -169,6 +169,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         The report dict (also written as JSON).
     """
     poses, images, output = Path(poses), Path(images), Path(output)
+    if limit is not None and limit < 0:  # a negative slice would refine all but the last -limit queries
+        raise ValueError(f"limit must be >= 0 (the first N queries), got {limit}")
     if output.exists() and output.resolve() == poses.resolve():
         raise ValueError(f"{output}: refusing to overwrite the input pose file")
     pf = read_poses(poses, dialect)

@@ -101,14 +101,24 @@ def test_cli_user_errors_are_one_line(tiny_case, tmp_path):
         ["evaluate", "--poses", str(d / "gt.txt"), "--gt", str(tmp_path / "nope.txt")],
         ["render", "--scene", str(d / "scene.ply"), "--pose", "1 0 0", "--camera", "64 48 50 50 32 24",
          "--out", str(tmp_path / "x.png")],
+        ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(d),
+         "--focal", "90", "--out", str(tmp_path / "o.txt"), "--limit", "-2"],
+        ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(d),
+         "--focal", "90", "--out", str(tmp_path / "o.txt"), "--prior-error", "0"],
     ]
     before = (d / "ace.txt").read_bytes()
+    errors = []
     for c in cases:
         p = subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli"] + c, capture_output=True, text=True)
         assert p.returncode == 2, (c, p.stderr)
         err = [ln for ln in p.stderr.splitlines() if ln.startswith("hgsloc")]
         assert len(err) == 1 and "Traceback" not in p.stderr, p.stderr
-    assert (d / "ace.txt").read_bytes() == before
+        errors.append(err[0])
+    assert (d / "ace.txt").read_bytes() == before and not (tmp_path / "o.txt").exists()
+    # a negative --limit is refused (a slice would refine all but the last two); a message ending in a quoted
+    # value keeps its closing quote
+    assert "--limit: expected a whole number >= 0, got '-2'" in errors[-2]
+    assert errors[-1].endswith("--prior-error: must be > 0, got '0'")
 
 
 def test_cli_render(tiny_case, tmp_path):
@@ -241,3 +251,15 @@ def test_cli_gradient_preset_and_no_polish(tiny_case, tmp_path):
     assert g["expansions"] == 0 and g["derivative_passes"] >= 2 and len(g["polish"]) >= 2
     assert len(g["polish"][-1]["jtj"]) == 6
     assert n["derivative_passes"] == 0 and n["polish"] == [] and n["expansions"] > 0
+
+
+def test_pose_file_limit_must_be_a_count(tiny_case, tmp_path):
+    """refine_pose_file(limit=-2) would slice off the last two queries and refine the rest: refused, nothing
+    written."""
+    from hgsloc_plugin.adapters.intrinsics import from_focal
+    from hgsloc_plugin.pipeline import refine_pose_file
+
+    d = tiny_case
+    with pytest.raises(ValueError, match="limit must be >= 0"):
+        refine_pose_file(d / "scene.ply", d / "ace.txt", d / "images", from_focal(90.0), tmp_path / "o.txt", limit=-2)
+    assert not (tmp_path / "o.txt").exists()

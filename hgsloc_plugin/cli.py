@@ -79,15 +79,20 @@ def summary_line(t: dict, out) -> str:
             + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
 
 
-def count_arg(text: str) -> int:
-    """argparse type of a count (``--limit``): an integer >= 0."""
+def count_arg(text: str, minimum: int = 0) -> int:
+    """argparse type of a count (``--limit``, ``--workers``): an integer >= ``minimum``."""
     try:
         n = int(text)
     except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+        n = minimum - 1
+    if n < minimum:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
     return n
+
+
+def positive_count_arg(text: str) -> int:
+    """argparse type of a count that must be >= 1 (``--sample``, ``--queries``)."""
+    return count_arg(text, 1)
 
 
 _LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
@@ -275,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--limit", type=count_arg, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
     r.add_argument("--figures", help="write comparison figures here")
-    r.add_argument("--workers", type=int, default=0, help="refine on N local Ray worker processes")
+    r.add_argument("--workers", type=count_arg, default=0, help="refine on N local Ray worker processes")
     r.add_argument("--ray-address", help="run on an existing Ray cluster ('auto' or ray://host:port)")
     r.add_argument("--quiet", action="store_true")
     r.add_argument("--skip-check", action="store_true", help="do not check map/pose agreement first")
@@ -291,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
     c.add_argument("--allow-distortion", action="store_true")
     c.add_argument("--white-background", action="store_true")
-    c.add_argument("--sample", type=int, default=8, help="queries to render (evenly spaced)")
+    c.add_argument("--sample", type=positive_count_arg, default=8, help="queries to render (evenly spaced)")
     c.add_argument("--figures", help="write query | rendering images here")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_check)
@@ -312,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("demo", help="run the whole chain on the embedded procedural room")
     m.add_argument("--out", default="demo_out")
-    m.add_argument("--queries", type=int, default=6)
+    m.add_argument("--queries", type=positive_count_arg, default=6)
     m.add_argument("--noise", action="append", help="protocol, e.g. '3cm,1deg' or 'q2,t2' (repeatable)")
     m.add_argument("--config", default="default")
     m.add_argument("--quiet", action="store_true")

@@ -118,6 +118,11 @@ def test_cli_user_errors_are_one_line(tiny_case, tmp_path):
     # a negative --limit is refused (a slice would refine all but the last two); a message ending in a quoted
     # value keeps its closing quote
     assert "--limit: expected a whole number >= 0, got '-2'" in errors[-2]
+    for args, msg in ((["demo", "--queries", "0"], "--queries: expected a whole number >= 1, got '0'"),
+                      (["check", "--scene", "s.ply", "--poses", "p.txt", "--images", ".", "--sample", "x"],
+                       "--sample: expected a whole number >= 1, got 'x'")):
+        p = subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli"] + args, capture_output=True, text=True)
+        assert p.returncode == 2 and msg in p.stderr, p.stderr
     assert errors[-1].endswith("--prior-error: must be > 0, got '0'")
 
 

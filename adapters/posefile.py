@@ -76,14 +76,14 @@ def _is_float(tok: str) -> bool:
         return False
 
 
-def _looks_like_record(tokens: list[str]) -> bool:
-    return (len(tokens) >= 8 and tokens[0].lower().endswith(IMAGE_EXT)
-            and all(_is_float(t) and math.isfinite(float(t)) for t in tokens[1:8]))
-
-
 def _record_numbers(tokens: list[str]) -> bool:
     """An image name and 7 numbers, finite or not (a non-finite one makes a failed estimate, not junk)."""
     return len(tokens) >= 8 and tokens[0].lower().endswith(IMAGE_EXT) and all(_is_float(t) for t in tokens[1:8])
+
+
+def _looks_like_record(tokens: list[str]) -> bool:
+    """An image name and 7 finite numbers."""
+    return _record_numbers(tokens) and all(math.isfinite(float(t)) for t in tokens[1:8])
 
 
 _TENSOR_WORDS = re.compile(r"tensor\(|device='[^']*'|dtype=torch\.\w+|grad_fn=<\w+>|\bnan\b|\binf\b")

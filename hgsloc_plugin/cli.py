@@ -9,6 +9,8 @@ from pathlib import Path
 
 from .refine.config import METRICS
 
+logger = logging.getLogger("hgsloc_plugin")
+
 
 def _intrinsics(args):
     from .adapters import intrinsics as intr
@@ -84,8 +86,8 @@ def count_arg(text: str, minimum: int = 0) -> int:
     try:
         n = int(text)
     except ValueError:
-        n = minimum - 1
-    if n < minimum:
+        n = None
+    if n is None or n < minimum:
         raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
     return n
 
@@ -180,12 +182,10 @@ def cmd_evaluate(args) -> int:
             raise ValueError(f"{p}: none of its {len(est)} estimates names an image of {g} (e.g. "
                              f"{next(iter(est))!r} vs {next(iter(gt))!r}): not the ground truth of these poses?")
         if missing:
-            logging.getLogger("hgsloc_plugin").warning("%s: %d of the %d images of %s have no estimate (counted "
-                                                       "as failed), e.g. %r", p, len(missing), len(gt), g,
-                                                       missing[0])
+            logger.warning("%s: %d of the %d images of %s have no estimate (counted as failed), e.g. %r", p,
+                           len(missing), len(gt), g, missing[0])
         if extra:
-            logging.getLogger("hgsloc_plugin").warning("%s: %d estimates name no image of %s (not counted), e.g. "
-                                                       "%r", p, len(extra), g, extra[0])
+            logger.warning("%s: %d estimates name no image of %s (not counted), e.g. %r", p, len(extra), g, extra[0])
         r = evaluate(est, gt)
         r.pop("errors")
         r["poses"], r["gt"] = p, g

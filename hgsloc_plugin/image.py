@@ -37,7 +37,8 @@ def load_image(image, *, name: str = "image", background=(0.0, 0.0, 0.0)) -> np.
         if t.ndim != 3 or t.shape[0] not in (1, 3, 4):
             raise ValueError(f"{name}: a torch image must be [3, H, W] (or [1 | 4, H, W], [H, W]), "
                              f"got {tuple(image.shape)}")
-        a = t.permute(1, 2, 0).numpy() if t.dtype == torch.uint8 else t.permute(1, 2, 0).float().numpy()
+        t = t if t.dtype == torch.uint8 else t.float()  # uint8 stays 0-255; numpy has no bfloat16
+        a = t.permute(1, 2, 0).numpy()
     else:
         a = np.asarray(image)
         a = a[..., None] if a.ndim == 2 else a

@@ -10,6 +10,7 @@ one call go through each kernel stage in one launch (the batch is a leading dime
 
 from __future__ import annotations
 
+import functools
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,7 +27,7 @@ from .kernels.layout import Rec, Stat
 from .kernels.pose_grad import NDER, NXI, blend_grad_kernel, projection_grad_kernel
 from .kernels.projection import projection_kernel
 from .kernels.readback import readback_kernel
-from .kernels.tile_sort import RADIX, count_kernel, tile_sort_kernel
+from .kernels.tile_sort import RADIX, bin_parallel, count_kernel, tile_sort_kernel
 from .pose import Pose
 from .scene import GaussianScene
 
@@ -86,17 +87,32 @@ class _Workspace:
 _HOST_DTYPES = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}
 
 
-def read_rows(arr: ti.Ndarray, n: int) -> np.ndarray:
-    """The first ``n`` rows of a device array [B, ...] as a host array [n, ...] (``kernels/readback.py``: a
-    workspace's ``to_numpy`` copies all B poses)."""
+def read_rows(arr, n: int) -> np.ndarray:
+    """The first ``n`` rows of a device array [B, ...] (a Taichi ndarray or a torch tensor) as a host array
+    [n, ...] (``kernels/readback.py``: a workspace's ``to_numpy`` copies all B poses)."""
+    if not isinstance(arr, ti.Ndarray):
+        return arr[:n].to("cpu", copy=True).numpy()
     out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
     readback_kernel()(arr, out)
     return out
 
 
-def _projection_records(B: int, n: int) -> dict:
-    """Per-Gaussian buffers of the projection and the tile sort for B poses of n Gaussians ([B, n, ...])."""
+def _torch_device() -> str:
+    return "cuda" if current_arch() == "cuda" else "cpu"
+
+
+def _projection_records(B: int, n: int, parallel: bool = False) -> dict:
+    """Per-Gaussian buffers of the projection and the tile sort for B poses of n Gaussians ([B, n, ...]); for the
+    parallel sort (``RasterConfig.sort``) the projection's depth, rect and ntiles are torch tensors on the Taichi
+    device, which the Taichi kernels read and write in place, and the serial sort's scratch is not needed."""
     nd = ti.ndarray
+    if parallel:
+        import torch
+
+        dev = _torch_device()
+        return dict(depth=torch.zeros((B, n), dtype=torch.float32, device=dev),
+                    rect=torch.zeros((B, n, 4), dtype=torch.int32, device=dev),
+                    ntiles=torch.zeros((B, n), dtype=torch.int32, device=dev), packed=nd(ti.f32, (B, n, Rec.SIZE)))
     return dict(depth=nd(ti.f32, (B, n)), rect=nd(ti.i32, (B, n, 4)), ntiles=nd(ti.i32, (B, n)),
                 packed=nd(ti.f32, (B, n, Rec.SIZE)), keys_a=nd(ti.u32, (B, n)), keys_b=nd(ti.u32, (B, n)),
                 ids_a=nd(ti.i32, (B, n)), ids_b=nd(ti.i32, (B, n)), rects=nd(ti.i32, (4, B, n)))
@@ -121,8 +137,10 @@ class _Pool:
     gws: dict = field(default_factory=dict)  # derivative workspaces, (width, height) -> _Workspace
     records: _Workspace | None = None
     derivative_records: _Workspace | None = None
-    isect: ti.Ndarray | None = None
+    isect: ti.Ndarray | None = None  # a torch tensor with the parallel sort, beside its keys and ids
     isect_cap: int = 0
+    keys: object = None
+    ids: object = None
 
 
 class Renderer:
@@ -168,6 +186,10 @@ class Renderer:
             self._blend_img = image_kernel(self.config)
             self._blend_cost = cost_kernel(self.config)
         self._reduce = reduce_kernel()
+        sort = self.config.sort
+        if sort == "auto":
+            sort = "parallel" if current_arch() == "cuda" else "serial"
+        self.sort_mode = sort
 
     def _init_state(self) -> None:
         self._pool = _Pool()
@@ -291,13 +313,20 @@ class Renderer:
             nd = ti.ndarray
             bufs = dict(
                 viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)), intrin=nd(ti.f32, (4,)),
-                extent=nd(ti.f32, (2,)), totals=nd(ti.i64, (B,)), isect_base=nd(ti.i64, (B,)),
-                hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)),
-                tile_start=nd(ti.i32, (B, tx * ty + 1)), background=nd(ti.f32, (3,)), tile=ts, tiles=(tx, ty),
+                extent=nd(ti.f32, (2,)), isect_base=nd(ti.i64, (B,)), background=nd(ti.f32, (3,)), tile=ts,
+                tiles=(tx, ty),
             )
+            if self.sort_mode == "parallel":
+                import torch
+
+                bufs["tile_start"] = torch.zeros((B, tx * ty + 1), dtype=torch.int32, device=_torch_device())
+            else:
+                bufs.update(totals=nd(ti.i64, (B,)), hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)),
+                            tile_start=nd(ti.i32, (B, tx * ty + 1)))
             ws = _Workspace(B, bufs)
             self._pool.ws[key] = ws
-        ws.bufs.update(self._shared("records", ws.batch, _projection_records))
+        ws.bufs.update(self._shared("records", ws.batch, functools.partial(
+            _projection_records, parallel=self.sort_mode == "parallel")))
         return ws
 
     def _geometry(self, camera: Camera, poses: list[Pose], ws: _Workspace, background) -> None:
@@ -320,6 +349,13 @@ class Renderer:
         self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
                       b["intrin"], camera.width, camera.height, b["tile"], B, b["extent"], b["depth"], b["rect"],
                       b["ntiles"], b["packed"])
+        if self.sort_mode == "parallel":
+            totals = bin_parallel(b["depth"], b["rect"], b["ntiles"], B, self.n, tx, tx * ty, self._scratch,
+                                  b["tile_start"])
+            base = np.zeros(ws.batch, np.int64)
+            base[1:B] = np.cumsum(totals)[:-1]
+            b["isect_base"].from_numpy(base)
+            return
         self._count(b["ntiles"], B, self.n, b["totals"])
         totals = read_rows(b["totals"], B)
         base = np.zeros(ws.batch, np.int64)
@@ -335,6 +371,21 @@ class Renderer:
         self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"],
                    b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
                    pool.isect)
+
+    def _scratch(self, m: int):
+        """The parallel sort's key, id and list buffers (torch, [>= m]), grown by 1.25x when too small."""
+        import torch
+
+        pool = self._pool
+        if pool.keys is None or m > pool.isect_cap:
+            cap = int(max(m, 1 << 16) * 1.25)
+            dev = _torch_device()
+            pool.isect = pool.keys = pool.ids = None  # free the old ones first
+            pool.keys = torch.empty(cap, dtype=torch.int64, device=dev)
+            pool.ids = torch.empty(cap, dtype=torch.int32, device=dev)
+            pool.isect = torch.zeros(cap, dtype=torch.int32, device=dev)
+            pool.isect_cap = cap
+        return pool.keys, pool.ids, pool.isect
 
     def _chunks(self, poses: list[Pose], size: int | None = None):
         """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""

@@ -23,6 +23,9 @@ class RasterConfig:
         radius_mode: "gsplat" (opacity-aware per-axis box) or "inria" (3 sigma of the largest eigenvalue, square).
         blend: "pixel" (one task per pixel, the GPU layout), "splat" (one task per tile, each Gaussian touching
             only its box: much faster on the CPU) or "auto" (splat on CPU, pixel on CUDA). Same images.
+        sort: "serial" (each pose's radix and tile sort on one thread: the CPU layout), "parallel" (one tile key
+            per Gaussian and tile, sorted by a device radix sort: the GPU layout; ``tile_sort.bin_parallel``) or
+            "auto" (serial on CPU, parallel on CUDA). Same tile lists, entry for entry.
         max_batch_elements: poses x Gaussians handled per launch; larger calls are split into chunks.
     """
 
@@ -36,6 +39,7 @@ class RasterConfig:
     far_plane: float = 1e10
     radius_mode: str = "gsplat"
     blend: str = "auto"
+    sort: str = "auto"
     max_batch_elements: int = 8_000_000
 
     def __post_init__(self) -> None:
@@ -43,6 +47,8 @@ class RasterConfig:
             raise ValueError(f"radius_mode must be 'gsplat' or 'inria', got {self.radius_mode!r}")
         if self.blend not in ("auto", "pixel", "splat"):
             raise ValueError(f"blend must be 'auto', 'pixel' or 'splat', got {self.blend!r}")
+        if self.sort not in ("auto", "serial", "parallel"):
+            raise ValueError(f"sort must be 'auto', 'serial' or 'parallel', got {self.sort!r}")
         if not (0 < self.alpha_max <= 1):
             raise ValueError(f"alpha_max must be in (0, 1], got {self.alpha_max}")
         if self.tile_size <= 0 or self.grad_tile_size <= 0 or self.max_batch_elements <= 0:

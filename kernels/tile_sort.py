@@ -6,12 +6,22 @@ Per pose: gather the visible Gaussians, sort them by depth with a stable LSD rad
 same key order as gsplat's (tile | depth) sort. Each Gaussian's tile rectangle travels through the radix
 passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id
 (at 1M Gaussians, 8 poses: 21 -> 17 ms per pose). Poses are processed in parallel, each pose serially;
-this suits the CPU backend. Reference twin: ``tests/reference/render_torch.py::bin_tiles``.
+this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
+``tests/reference/render_torch.py::bin_tiles``.
+
+On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread: on an H100
+the serial sort made a render of 49k Gaussians take 3.9 ms and of 195k 9.5 ms, slower than 16 CPU threads).
+There (``sort="parallel"``) each visible Gaussian writes one 64-bit key per tile it touches, in parallel,
+``(pose * tiles + tile) << 32 | depth bits``, at its exclusive prefix sum of the tile counts
+(:func:`isect_keys_kernel`); the keys are sorted by a stable device radix sort (``torch.sort(stable=True)``,
+CUB on CUDA) and each tile's range is its key count (:func:`bin_parallel`). Keys are written in Gaussian order,
+so the stable sort leaves ties in index order: the lists are those of the serial sort, entry for entry.
 """
 
 
 import functools
 
+import numpy as np
 import taichi as ti
 
 from .config import RasterConfig
@@ -145,3 +155,71 @@ def tile_sort_kernel(config: RasterConfig):
                             cursor[b, t] += 1
 
     return tile_sort
+
+
+@functools.cache
+def isect_keys_kernel():
+    """Parallel binning, step 1 (one thread per pose and Gaussian).
+
+    Kernel arguments:
+        depth [B, >= N] f32, rect [B, >= N, 4] i32 (x0, y0, x1, y1 tile ranges), ntiles [B, >= N] i32,
+        offsets [B * N] i64 (exclusive prefix sum of ntiles over pose-major (pose, Gaussian)), tiles_x,
+        num_tiles, num_poses, num_gaussians N;
+        outputs: keys [>= M] i64 ``(pose * num_tiles + tile) << 32 | depth bits`` (depths are positive, so their
+        bits order like the values), ids [>= M] i32 (Gaussian index), M = the sum of ntiles.
+    """
+
+    @ti.kernel
+    def isect_keys(depth: ti.types.ndarray(dtype=ti.f32, ndim=2), rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
+                   ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), offsets: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                   tiles_x: ti.i32, num_tiles: ti.i32, num_poses: ti.i32, num_gaussians: ti.i32,
+                   keys: ti.types.ndarray(dtype=ti.i64, ndim=1), ids: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+        for b, i in ti.ndrange(num_poses, num_gaussians):
+            if ntiles[b, i] > 0:
+                k = ti.cast(offsets[b * num_gaussians + i], ti.i32)
+                low = ti.cast(ti.bit_cast(depth[b, i], ti.i32), ti.i64)
+                for ty in range(rect[b, i, 1], rect[b, i, 3]):
+                    for tx in range(rect[b, i, 0], rect[b, i, 2]):
+                        keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
+                        ids[k] = i
+                        k += 1
+
+    return isect_keys
+
+
+def bin_parallel(depth, rect, ntiles, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int, scratch,
+                 tile_start) -> np.ndarray:
+    """Tile lists of ``num_poses`` poses by a parallel key sort (torch tensors on the Taichi device).
+
+    Args:
+        depth [B, >= N], rect [B, >= N, 4], ntiles [B, >= N]: the projection's outputs (torch tensors).
+        scratch: ``scratch(M)`` -> (keys [>= M] i64, ids [>= M] i32, isect [>= M] i32) torch tensors.
+        tile_start: [B, num_tiles + 1] i32 torch tensor; its first ``num_poses`` rows receive each tile's start
+            relative to the pose's first entry (the last column: the pose's total).
+
+    Returns:
+        totals [num_poses] int64 (numpy): entries per pose. The ``isect`` of ``scratch`` holds the lists, each pose's
+        from the sum of the earlier poses' totals, as the serial sort writes them.
+    """
+    import torch
+
+    B, n = num_poses, num_gaussians
+    cuda = depth.is_cuda
+    if cuda:
+        ti.sync()  # the projection's writes are done before torch reads them
+    counts = ntiles[:B, :n].reshape(-1).to(torch.int64)
+    offsets = torch.cumsum(counts, 0) - counts
+    totals = counts.view(B, n).sum(1).cpu().numpy()
+    m = int(totals.sum())
+    keys, ids, isect = scratch(m)
+    isect_keys_kernel()(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, keys, ids)
+    if cuda:
+        ti.sync()
+    sorted_keys, order = torch.sort(keys[:m], stable=True)
+    torch.index_select(ids[:m], 0, order, out=isect[:m])
+    per_tile = torch.bincount(sorted_keys >> 32, minlength=B * num_tiles).view(B, num_tiles)
+    tile_start[:B, 0] = 0
+    tile_start[:B, 1:] = torch.cumsum(per_tile, 1)
+    if cuda:
+        torch.cuda.synchronize()  # done before the blend kernels read the lists
+    return totals

@@ -1,0 +1,112 @@
+"""The parallel tile sort (the GPU layout: a key per Gaussian and tile, a stable device sort; RasterConfig.sort)
+against the serial one (the CPU layout) and the reference binning, both run here on the CPU backend."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.demo.queries import degrade
+from hgsloc_plugin.render import get_renderer, read_rows
+
+from .conftest import random_scene, room_query
+from .reference.render_torch import bin_tiles, project
+from .test_pose_grad import cost_case, moved
+
+
+def renderers(scene, **kw):
+    return [get_renderer(scene, hp.RasterConfig(sort=s, **kw)) for s in ("serial", "parallel")]
+
+
+def lists(r, cam, n_poses, grad=False):
+    """(tile_start [B, T + 1], the B poses' entries of isect) of a renderer's last binning at ``cam``."""
+    ws = r._workspace(cam, n_poses, grad=grad)
+    starts = read_rows(ws.bufs["tile_start"], n_poses)
+    return starts, read_rows(r._pool.isect, int(starts[:, -1].sum()))
+
+
+def test_parallel_lists_match_reference_binning():
+    scene = random_scene(n=200, sh_degree=0, seed=3)
+    cam = hp.Camera(48, 40, 40.0, 40.0, 24.0, 20.0)
+    T = hp.Pose.identity()
+    _, r = renderers(scene)
+    assert r.sort_mode == "parallel"
+    r.render_full(cam, [T])
+    starts, isect = lists(r, cam, 1)
+    ref = bin_tiles(project(scene, cam, T.matrix()), cam)
+    assert starts.shape == (1, len(ref) + 1) and sum(len(ids) for ids in ref) > 100
+    for t, ids in enumerate(ref):
+        np.testing.assert_array_equal(r.source_index[isect[starts[0, t]:starts[0, t + 1]]], ids.numpy(),
+                                      err_msg=f"tile {t}")
+
+
+@pytest.mark.parametrize("case", ["random", "donut.ply", "small_sh3.ply", "room"])
+def test_parallel_sort_equals_serial_entry_for_entry(case):
+    """Tile lists, images, fused costs, windowed costs and visibility equal for batches of 1, 5 and 14 poses
+    (several poses in one key sort: the pose index is the keys' top part), including exact depth ties (the
+    random scene's duplicated Gaussians: ties stay in index order, as the serial radix sort leaves them)."""
+    if case == "random":
+        s = random_scene(n=400, sh_degree=1, seed=21)
+        dup = np.arange(0, 400, 7)  # exact copies: equal depths, so the order of ties matters
+        scene = hp.GaussianScene.from_arrays(np.concatenate([s.means, s.means[dup]]),
+                                             np.concatenate([s.quats, s.quats[dup]]),
+                                             np.concatenate([s.scales, s.scales[dup]]),
+                                             np.concatenate([s.opacities, s.opacities[dup] * 0.5]),
+                                             sh=np.concatenate([s.sh, s.sh[dup] * 0.7]))
+        cam = hp.Camera(90, 70, 70.0, 70.0, 45.0, 33.0)
+        T = hp.Pose.identity()
+    else:
+        scene, cam, T = cost_case(case)
+    serial, parallel = renderers(scene)
+    img = degrade(hp.render(scene, cam, moved(T, 3, 0.02)), np.random.default_rng(0))
+    for count in (1, 5, 14):
+        poses = [moved(T, k % 6, 0.003 * (k + 1) * (-1) ** k) for k in range(count)]
+        outs = [r.render_full(cam, poses) for r in (serial, parallel)]
+        for a, b in zip(*outs):
+            np.testing.assert_array_equal(a, b)
+        (sa, ia), (sb, ib) = (lists(r, cam, count) for r in (serial, parallel))
+        assert sa[:, -1].sum() > 0
+        np.testing.assert_array_equal(sa, sb)
+        np.testing.assert_array_equal(ia, ib)
+        target = [r.upload_image(img) for r in (serial, parallel)]
+        np.testing.assert_array_equal(*(r.cost_stats(cam, poses, t) for r, t in zip((serial, parallel), target)))
+        q = [r.upload_window_query(img) for r in (serial, parallel)]
+        np.testing.assert_array_equal(*(r.window_cost(cam, poses, qq) for r, qq in zip((serial, parallel), q)))
+        np.testing.assert_array_equal(*(r.visible(cam, poses) for r in (serial, parallel)))
+
+
+@pytest.mark.parametrize("case", ["room", "small_sh3.ply"])
+def test_parallel_sort_gives_the_same_derivatives_and_refinement(case):
+    """The derivative pass (its own 8 px binning), the cs gradient and JtJ, and a whole refinement (search,
+    polish, acceptance) give the same numbers and pose with either sort."""
+    scene, cam, T = cost_case(case)
+    serial, parallel = renderers(scene)
+    img = degrade(hp.render(scene, cam, moved(T, 4, 0.01)), np.random.default_rng(0))
+    poses = [T, moved(T, 1, 0.004), moved(T, 5, -0.003)]
+    for a, b in zip(serial.render_derivatives(cam, poses), parallel.render_derivatives(cam, poses)):
+        np.testing.assert_array_equal(a, b)
+    (sa, ia), (sb, ib) = (lists(r, cam, 3, grad=True) for r in (serial, parallel))
+    np.testing.assert_array_equal(sa, sb)
+    np.testing.assert_array_equal(ia, ib)
+    q = [r.upload_window_query(img) for r in (serial, parallel)]
+    for a, b in zip(serial.pose_gradient(cam, poses, q[0]), parallel.pose_gradient(cam, poses, q[1])):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_parallel_sort_refines_to_the_same_pose():
+    cam = hp.Camera.from_fov(160, 120, 65.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=4, noise_deg=1.0, noise_shift=0.03, noise_seed=2)
+    img = degrade(img, np.random.default_rng(1))
+    cfg = hp.RefineConfig(working_set_min=0)  # working sets: pooled buffers wider than the Gaussians sorted
+    res = [hp.HGSLocPlugin(scene, cfg, raster=hp.RasterConfig(sort=s)).refine(img, cam, prior)
+           for s in ("serial", "parallel")]
+    assert res[0].renders == res[1].renders and res[0].renders > 20
+    np.testing.assert_array_equal(res[0].pose.qvec, res[1].pose.qvec)
+    np.testing.assert_array_equal(res[0].pose.tvec, res[1].pose.tvec)
+    assert res[0].pose.errors_to(gt)[0] < prior.errors_to(gt)[0]
+
+
+def test_sort_setting_is_checked():
+    with pytest.raises(ValueError, match="sort must be"):
+        hp.RasterConfig(sort="gpu")

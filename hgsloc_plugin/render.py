@@ -11,6 +11,7 @@ one call go through each kernel stage in one launch (the batch is a leading dime
 from __future__ import annotations
 
 import functools
+import logging
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -30,6 +31,8 @@ from .kernels.readback import readback_kernel
 from .kernels.tile_sort import RADIX, bin_parallel, count_kernel, tile_sort_kernel
 from .pose import Pose
 from .scene import GaussianScene
+
+logger = logging.getLogger(__name__)
 
 
 def covariances_3d(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:
@@ -95,6 +98,28 @@ def read_rows(arr, n: int) -> np.ndarray:
     out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
     readback_kernel()(arr, out)
     return out
+
+
+def _torch_has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def sort_mode(requested: str, arch: str) -> str:
+    """The tile sort a renderer uses (``RasterConfig.sort``) on backend ``arch``: "parallel" on CUDA for
+    "auto", unless torch (which sorts the keys on the device) has no CUDA there: then "serial", with a warning."""
+    if requested == "serial" or (requested == "auto" and arch != "cuda"):
+        return "serial"
+    if arch == "cuda" and not _torch_has_cuda():
+        msg = ("Taichi runs on CUDA but torch has no CUDA (torch.cuda.is_available() is False), and the parallel "
+               "tile sort sorts its keys with torch on the GPU")
+        if requested == "parallel":
+            raise RuntimeError(f"RasterConfig(sort='parallel'): {msg}; install a CUDA build of torch")
+        logger.warning("%s: falling back to the serial sort (one GPU thread per pose, several times slower); "
+                       "install a CUDA build of torch", msg)
+        return "serial"
+    return "parallel"
 
 
 def _torch_device() -> str:
@@ -186,10 +211,7 @@ class Renderer:
             self._blend_img = image_kernel(self.config)
             self._blend_cost = cost_kernel(self.config)
         self._reduce = reduce_kernel()
-        sort = self.config.sort
-        if sort == "auto":
-            sort = "parallel" if current_arch() == "cuda" else "serial"
-        self.sort_mode = sort
+        self.sort_mode = sort_mode(self.config.sort, current_arch())
 
     def _init_state(self) -> None:
         self._pool = _Pool()

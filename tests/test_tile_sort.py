@@ -110,3 +110,24 @@ def test_parallel_sort_refines_to_the_same_pose():
 def test_sort_setting_is_checked():
     with pytest.raises(ValueError, match="sort must be"):
         hp.RasterConfig(sort="gpu")
+
+
+def test_sort_mode_per_backend(monkeypatch, caplog):
+    """auto: serial on the CPU, parallel on CUDA; on CUDA without a CUDA torch the parallel sort cannot run:
+    auto falls back to serial with a warning, an explicit "parallel" is an error saying why."""
+    import importlib
+    import logging
+
+    render = importlib.import_module("hgsloc_plugin.render")  # the package's ``render`` is the function
+
+    assert render.sort_mode("auto", "cpu") == "serial"
+    assert render.sort_mode("parallel", "cpu") == "parallel"
+    assert render.sort_mode("serial", "cuda") == "serial"
+    monkeypatch.setattr(render, "_torch_has_cuda", lambda: True)
+    assert render.sort_mode("auto", "cuda") == "parallel"
+    monkeypatch.setattr(render, "_torch_has_cuda", lambda: False)
+    with caplog.at_level(logging.WARNING, logger="hgsloc_plugin"):
+        assert render.sort_mode("auto", "cuda") == "serial"
+    assert "torch has no CUDA" in caplog.text and "serial sort" in caplog.text
+    with pytest.raises(RuntimeError, match="install a CUDA build of torch"):
+        render.sort_mode("parallel", "cuda")

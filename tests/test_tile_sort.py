@@ -131,3 +131,20 @@ def test_sort_mode_per_backend(monkeypatch, caplog):
     assert "torch has no CUDA" in caplog.text and "serial sort" in caplog.text
     with pytest.raises(RuntimeError, match="install a CUDA build of torch"):
         render.sort_mode("parallel", "cuda")
+
+
+def test_parallel_sort_with_nothing_in_view():
+    """A batch where one pose sees no Gaussian (zero keys for it, or for the whole call) renders the background,
+    as the serial sort does."""
+    scene = random_scene(n=150, sh_degree=0, seed=4)
+    cam = hp.Camera(40, 30, 35.0, 35.0, 20.0, 15.0)
+    away = hp.Pose.identity().perturbed_in_camera([0.0, np.pi, 0.0], [0.0, 0.0, 0.0])  # looking down -z
+    serial, parallel = renderers(scene)
+    for poses in ([away], [hp.Pose.identity(), away, hp.Pose.identity()]):
+        a, b = (r.render_full(cam, poses, background=(0.1, 0.2, 0.3)) for r in (serial, parallel))
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+        np.testing.assert_allclose(b[0][poses.index(away)], np.broadcast_to([0.1, 0.2, 0.3], (30, 40, 3)), atol=1e-7)
+        starts, _ = lists(parallel, cam, len(poses))
+        assert starts[poses.index(away), -1] == 0 and starts[:, -1].sum() == (0 if len(poses) == 1 else
+                                                                            starts[0, -1] * 2)

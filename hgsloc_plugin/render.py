@@ -94,6 +94,8 @@ def read_rows(arr, n: int) -> np.ndarray:
     """The first ``n`` rows of a device array [B, ...] (a Taichi ndarray or a torch tensor) as a host array
     [n, ...] (``kernels/readback.py``: a workspace's ``to_numpy`` copies all B poses)."""
     if not isinstance(arr, ti.Ndarray):
+        if arr.is_cuda:
+            ti.sync()  # Taichi kernels that wrote the tensor are done before torch copies it
         return arr[:n].to("cpu", copy=True).numpy()
     out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
     readback_kernel()(arr, out)

@@ -57,7 +57,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     from hgsloc_plugin.demo.scene import densify, make_room_scene
     from hgsloc_plugin.noise import apply_protocol
 
-    hp.init()
+    arch = hp.init()
     room = make_room_scene()
     cam = QUERY_CAMERA
     gts = query_poses(queries, seed=1)
@@ -92,7 +92,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
         nsel.append(r.working_set_selections)
         passes.append(r.derivative_passes)
     e0, e1 = np.array(e0), np.array(e1)
-    return {"k": k, "path": path, "gaussians": scene.num_gaussians, "ms_per_render": ms,
+    return {"k": k, "path": path, "arch": arch, "gaussians": scene.num_gaussians, "ms_per_render": ms,
             "working_set": float(np.median(wset)),
             "selections": float(np.mean(nsel)), "renders": float(np.median(ren)),
             "passes": float(np.median(passes)), "warm_up_s": warm, "s_per_query": float(np.mean(sec)),
@@ -137,7 +137,7 @@ def main() -> None:
                     f"{r['warm_up_s']:.1f} |")
             lines.append(line)
             print(line, flush=True)
-    lines.append(f"\nTotal {time.time() - t_all:.0f} s.")
+    lines.append(f"\nTotal {time.time() - t_all:.0f} s; Taichi backend: {rows[a.paths[0]]['arch']}.")
     print(lines[-1])
     if a.out:
         from hgsloc_plugin.fileio import atomic_write_bytes

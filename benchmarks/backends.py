@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.lod import psnr  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 
 PRIORS = {"snow": ((2, 1.0), (5, 2.0)), "lego": ((1, 1.0),)}  # (% of depth, or 0.025 units per 1, deg)
@@ -125,11 +126,6 @@ def run(out: Path) -> None:
     out.write_text(json.dumps(rec, indent=1))
     np.savez_compressed(out.with_suffix(".npz"), **images)
     print(f"wrote {out} and {out.with_suffix('.npz')} ({rec['seconds']:.0f} s)", file=sys.stderr)
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
-    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
 def compare(pa: Path, pb: Path) -> list[str]:

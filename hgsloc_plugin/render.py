@@ -373,41 +373,38 @@ class Renderer:
         self._project(self._means, self._cov3d, self._opac, self._sh, self._smax, b["viewmats"], b["campos"],
                       b["intrin"], camera.width, camera.height, b["tile"], B, b["extent"], b["depth"], b["rect"],
                       b["ntiles"], b["packed"])
-        if self.sort_mode == "parallel":
-            totals = bin_parallel(b["depth"], b["rect"], b["ntiles"], B, self.n, tx, tx * ty, self._scratch,
+        parallel = self.sort_mode == "parallel"
+        if parallel:
+            totals = bin_parallel(b["depth"], b["rect"], b["ntiles"], B, self.n, tx, tx * ty, self._list_buffers,
                                   b["tile_start"])
-            base = np.zeros(ws.batch, np.int64)
-            base[1:B] = np.cumsum(totals)[:-1]
-            b["isect_base"].from_numpy(base)
-            return
-        self._count(b["ntiles"], B, self.n, b["totals"])
-        totals = read_rows(b["totals"], B)
+        else:
+            self._count(b["ntiles"], B, self.n, b["totals"])
+            totals = read_rows(b["totals"], B)
         base = np.zeros(ws.batch, np.int64)
         base[1:B] = np.cumsum(totals)[:-1]
-        need = int(totals.sum())
-        pool = self._pool
-        if need > pool.isect_cap or pool.isect is None:
-            cap = max(need, 1 << 16)
-            cap = int(cap * 1.25)
-            pool.isect = ti.ndarray(ti.i32, (cap,))
-            pool.isect_cap = cap
         b["isect_base"].from_numpy(base)
-        self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"],
-                   b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
-                   pool.isect)
+        if not parallel:
+            _, _, isect = self._list_buffers(int(totals.sum()))
+            self._sort(b["depth"], b["rect"], b["ntiles"], b["isect_base"], tx, ty, B, self.n, b["keys_a"],
+                       b["keys_b"], b["ids_a"], b["ids_b"], b["rects"], b["hist"], b["cursor"], b["tile_start"],
+                       isect)
 
-    def _scratch(self, m: int):
-        """The parallel sort's key, id and list buffers (torch, [>= m]), grown by 1.25x when too small."""
-        import torch
-
+    def _list_buffers(self, m: int):
+        """The pool's tile-list buffer ``isect`` for at least ``m`` entries, with the parallel sort's key and id
+        buffers beside it (torch; None for the serial sort): (keys, ids, isect), grown to 1.25x when too small."""
         pool = self._pool
-        if pool.keys is None or m > pool.isect_cap:
+        if pool.isect is None or m > pool.isect_cap:
             cap = int(max(m, 1 << 16) * 1.25)
-            dev = _torch_device()
             pool.isect = pool.keys = pool.ids = None  # free the old ones first
-            pool.keys = torch.empty(cap, dtype=torch.int64, device=dev)
-            pool.ids = torch.empty(cap, dtype=torch.int32, device=dev)
-            pool.isect = torch.zeros(cap, dtype=torch.int32, device=dev)
+            if self.sort_mode == "parallel":
+                import torch
+
+                dev = _torch_device()
+                pool.keys = torch.empty(cap, dtype=torch.int64, device=dev)
+                pool.ids = torch.empty(cap, dtype=torch.int32, device=dev)
+                pool.isect = torch.zeros(cap, dtype=torch.int32, device=dev)
+            else:
+                pool.isect = ti.ndarray(ti.i32, (cap,))
             pool.isect_cap = cap
         return pool.keys, pool.ids, pool.isect
 

@@ -1,0 +1,243 @@
+"""Map floor: how far an imperfect map's cost minimum lies from the true pose, and what the refiner can see of it.
+
+Usage: python benchmarks/map_floor.py [--datasets snow lego] [--draws 8] [--out benchmarks/map_floor.md]
+
+Part 1, per real query (``../shared/data/snow``: real photos; ``lego``: held-out renders): the map's minimum
+(the default refinement from 3 priors 2 % of depth / 1 deg off, the median pose of those accepted), its
+error against the true (SfM) pose in 7-Scenes-equivalent cm (centre error x 2 m / median depth) and degrees, the
+true pose's Mahalanobis distance under the refinement's covariance (6 degrees of freedom: median 2.3 when the
+covariance is right), the cs cost's rise from the minimum to the true pose, and where other costs put the minimum
+on the line from the map's minimum (0) to the true pose (1), from a parabola fitted to 9 renders on it: windowed
+cs with window sigma 1.5 (the kernels'), 3 or 6 px, each with both images blurred by 0, 1 or 2 px, and pixel
+weightings fixed at the minimum (pixels the rendering explains, cs > 0.5 or 0.7; opaque ones, alpha > 0.99;
+where the rendering is at least half as sharp as the photo). Per-pixel maps come from the test suite's PyTorch
+reference (``tests/reference/render_torch.window_map``).
+
+Part 2, the decision the acceptance rule would have to make: per query, ``--draws`` priors 0.25 cm-eq / 0.1 deg, as
+many 1 cm-eq / 0.5 deg and as many 3 cm-eq / 1 deg off (random directions), each refined with the defaults. Per
+prior, what the refiner can observe (the move from the prior to the search's pose in cm-eq and in Mahalanobis units
+of the refined pose's covariance, and the acceptance rule's significance) and what it cannot (whether the search's
+pose is > 1 cm-eq or > 0.5 deg further from the truth than the prior: "worse"). A rule that sees only the
+observables returns the same verdict for the same observations; the last table gives, for the default acceptance
+rule and for thresholds on the move (Mahalanobis, or in cm-eq: the refiner knows the depth), how many returned poses
+would be worse and how many 1 / 2 cm recalls would be lost against accepting every search.
+(A Mahalanobis move of nan: the search's pose has no covariance, i.e. the route ended without a polish.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from real_photos import load_dataset  # noqa: E402
+
+import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.pose import so3_log  # noqa: E402
+from hgsloc_plugin.render import Renderer  # noqa: E402
+from tests.reference.render_torch import window_map  # noqa: E402
+
+LINE = np.linspace(-0.5, 1.5, 9)
+#: part 2's priors: (cm-eq, deg) off the true pose in random directions
+LEVELS = ((0.25, 0.1), (1.0, 0.5), (3.0, 1.0))
+#: part 1's priors per query (2 % of depth / 1 deg off) whose median accepted result is taken as the minimum
+MINIMUM_DRAWS = 3
+
+
+def offset(pose: hp.Pose, target: hp.Pose) -> np.ndarray:
+    """[6] xi = (w, v) with ``pose.perturbed_in_camera(w, v) == target``."""
+    dR = target.R @ pose.R.T
+    return np.concatenate([so3_log(dR), target.tvec - dR @ pose.tvec])
+
+
+def mahalanobis(xi: np.ndarray, cov: np.ndarray | None) -> float:
+    if cov is None or not np.all(np.isfinite(cov)):
+        return float("nan")
+    return float(np.sqrt(xi @ np.linalg.solve(cov, xi)))
+
+
+def blur(x: torch.Tensor, s: float) -> torch.Tensor:
+    """[H, W, 3] float64 blurred by a Gaussian of ``s`` px (replicate padding)."""
+    if s == 0:
+        return x
+    r = int(3 * s)
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float64) / s) ** 2)
+    k = k / k.sum()
+    K = (k[:, None] * k[None, :])[None, None].repeat(3, 1, 1, 1)
+    return F.conv2d(F.pad(x.permute(2, 0, 1)[None], (r, r, r, r), mode="replicate"), K, groups=3)[0].permute(1, 2, 0)
+
+
+def local_variance(x: torch.Tensor) -> torch.Tensor:
+    """[H, W] channel mean of the 11 x 11 windowed variance of [H, W, 3]."""
+    mu = blur(x, 1.5)
+    return (blur(x * x, 1.5) - mu * mu).mean(-1)
+
+
+def line_minima(renderer: Renderer, cam: hp.Camera, image: np.ndarray, pose: hp.Pose, xi: np.ndarray,
+                bg) -> dict[str, float]:
+    """Cost variant -> position of its minimum on pose -> pose.perturbed_in_camera(xi) (0 = pose, 1 = the end)."""
+    poses = [pose.perturbed_in_camera(t * xi[:3], t * xi[3:]) for t in LINE]
+    rgb, alpha, _ = renderer.render_full(cam, poses, bg)
+    q = torch.from_numpy(image.astype(np.float64))
+    rs = [torch.from_numpy(r.astype(np.float64)) for r in rgb]
+
+    def argmin(cost):
+        a = np.polyfit(LINE, cost, 2)
+        return float(-a[1] / (2 * a[0])) if a[0] > 0 else float("nan")
+
+    out = {}
+    for sig, rad in ((1.5, 5), (3.0, 9), (6.0, 18)):
+        for b in (0.0, 1.0, 2.0):
+            out[f"cs w{sig:g} blur {b:g}"] = argmin([-window_map(blur(r, b), blur(q, b), False, sig, rad).mean().item()
+                                                     for r in rs])
+    j0 = int(np.argmin(np.abs(LINE)))
+    maps = np.stack([window_map(r, q, False, 1.5, 5).numpy() for r in rs])
+    sharp = (local_variance(rs[j0]).numpy() + 1e-4) / (local_variance(q).numpy() + 1e-4)
+    weights = {"cs > 0.5": maps[j0] > 0.5, "cs > 0.7": maps[j0] > 0.7, "alpha > 0.99": alpha[j0] > 0.99,
+               "sharp > 0.5": sharp > 0.5}
+    for k, w in weights.items():
+        w = w.astype(np.float64)
+        out[k] = argmin(-(maps * w).sum((1, 2)) / max(w.sum(), 1.0))
+    return out
+
+
+def cm_eq(t: float, depth: float) -> float:
+    return t * 200.0 / depth
+
+
+def floor_part(name: str, cam, scene, queries, bg) -> tuple[list[str], list]:
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+    renderer = Renderer(scene)
+    lines = [f"\n### {name}: the map's minimum per query ({scene.num_gaussians} Gaussians)\n",
+             "| query | minimum: error cm-eq / deg | true pose: Mahalanobis | cs rise min -> truth | "
+             "minimum on the line min (0) -> truth (1), per cost |", "|---|---|---|---|---|"]
+    minima = []
+    for i, (_name, gt, img, depth) in enumerate(queries):
+        rng = np.random.default_rng(500 + i)
+        found = []
+        for _ in range(MINIMUM_DRAWS):
+            r = refiner.refine(img, cam, gt.perturbed_in_camera(*_unit_pair(rng, np.radians(1.0), 0.02 * depth)))
+            if r.accepted:
+                found.append(r)
+        if not found:
+            lines.append(f"| {i} | no accepted refinement | | | |")
+            minima.append(None)
+            continue
+        errs = np.array([cm_eq(r.pose.errors_to(gt)[0], depth) for r in found])
+        best = found[int(np.argsort(errs)[len(errs) // 2])]
+        xi = offset(best.pose, gt)
+        c = renderer.window_cost(cam, [best.pose, gt], Renderer.upload_window_query(img), bg)
+        cs = 1.0 - c[:, 0] / c[:, 1]
+        lm = line_minima(renderer, cam, img, best.pose, xi, bg)
+        t, a = best.pose.errors_to(gt)
+        lines.append(f"| {i} | {cm_eq(t, depth):.2f} / {a:.2f} | {mahalanobis(xi, best.covariance):.1f} | "
+                     f"{100 * (cs[1] / cs[0] - 1):+.1f} % | " + ", ".join(f"{k} {v:+.2f}" for k, v in lm.items())
+                     + " |")
+        print(lines[-1], flush=True)
+        minima.append(best)
+    return lines, minima
+
+
+def _unit_pair(rng, r: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+    w, v = rng.normal(size=3), rng.normal(size=3)
+    return w / np.linalg.norm(w) * r, v / np.linalg.norm(v) * t
+
+
+def decision_part(name: str, cam, scene, queries, bg, draws: int) -> list[str]:
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+    rows = []
+    for i, (_name, gt, img, depth) in enumerate(queries):
+        for level, (cm, deg) in enumerate(LEVELS):
+            rng = np.random.default_rng(700 + 10 * i + level)
+            for _ in range(draws):
+                prior = gt.perturbed_in_camera(*_unit_pair(rng, np.radians(deg), cm / 200.0 * depth))
+                r = refiner.refine(img, cam, prior)
+                if r.search_pose is None or r.assessment is None:
+                    continue
+                t0, a0 = prior.errors_to(gt)
+                t1, a1 = r.search_pose.errors_to(gt)
+                move = cm_eq(prior.errors_to(r.search_pose)[0], depth)
+                rows.append(dict(q=i, level=f"{cm:g} cm / {deg:g} deg", e0=(cm_eq(t0, depth), a0),
+                                 e1=(cm_eq(t1, depth), a1), move=move,
+                                 maha=mahalanobis(offset(r.search_pose, prior), r.covariance),
+                                 sig=r.assessment.significance, accepted=r.accepted))
+    worse = lambda d: d["e1"][0] > d["e0"][0] + 1.0 or d["e1"][1] > d["e0"][1] + 0.5  # noqa: E731
+    lines = [f"\n### {name}: what the refiner sees vs whether its pose is worse ({len(rows)} searches)\n",
+             "| query | prior | searches | worse | move cm-eq (min-max) of worse / of the others | "
+             "Mahalanobis move of worse / of the others | significance of worse / of the others |",
+             "|---|---|---|---|---|---|---|"]
+
+    def span(vals):
+        return f"{min(vals):.1f}-{max(vals):.1f}" if vals else "-"
+
+    for i in range(len(queries)):
+        for level in sorted({d["level"] for d in rows}):
+            sel = [d for d in rows if d["q"] == i and d["level"] == level]
+            w = [d for d in sel if worse(d)]
+            o = [d for d in sel if not worse(d)]
+            lines.append(f"| {i} | {level} | {len(sel)} | {len(w)} | {span([d['move'] for d in w])} / "
+                         f"{span([d['move'] for d in o])} | {span([d['maha'] for d in w])} / "
+                         f"{span([d['maha'] for d in o])} | {span([d['sig'] for d in w])} / "
+                         f"{span([d['sig'] for d in o])} |")
+    lines += ["", "Rules that keep the prior on what the refiner observes (searches of every query and "
+              "level above; recall counted on the returned pose vs accepting every search):", "",
+              "| keep the prior when | worse | recall at 1 cm / 1 deg lost | at 2 cm / 2 deg lost |",
+              "|---|---|---|---|"]
+
+    def recall(rs, key, cm):
+        return sum(1 for d in rs if d[key][0] <= cm and d[key][1] <= cm)
+
+    def rule_row(label, keep):
+        out = [dict(d, out=d["e0"] if keep(d) else d["e1"]) for d in rows]
+        nw = sum(1 for d in out if not keep(d) and worse(d))
+        return (f"| {label} | {nw} | {recall(rows, 'e1', 1.0) - recall(out, 'out', 1.0)} | "
+                f"{recall(rows, 'e1', 2.0) - recall(out, 'out', 2.0)} |")
+
+    lines.append(rule_row("the default acceptance rule", lambda d: not d["accepted"]))
+    for th in (1.0, 2.0, 4.0, 8.0, 16.0):
+        lines.append(rule_row(f"Mahalanobis move < {th:g}", lambda d, th=th: not d["maha"] >= th))
+    for th in (1.0, 2.0, 3.0, 4.0):
+        lines.append(rule_row(f"move < {th:g} cm-eq", lambda d, th=th: d["move"] < th))
+    print("\n".join(lines), flush=True)
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--datasets", nargs="+", default=["snow", "lego"])
+    ap.add_argument("--queries", type=int, default=6)
+    ap.add_argument("--draws", type=int, default=8)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    hp.init()
+    t0 = time.perf_counter()
+    lines = ["# Map floor (`benchmarks/map_floor.py`)", "",
+             f"One run on this machine ({hp.current_arch()}), {args.draws} priors per query and level."]
+    for name in args.datasets:
+        loaded = load_dataset(name)
+        if loaded is None:
+            continue
+        cam, scene, queries, bg = loaded
+        queries = queries[:args.queries]
+        part, _ = floor_part(name, cam, scene, queries, bg)
+        lines += part
+        lines += decision_part(name, cam, scene, queries, bg, args.draws)
+    lines.append(f"\nTotal {time.perf_counter() - t0:.0f} s.")
+    text = "\n".join(lines) + "\n"
+    if args.out:
+        Path(args.out).write_text(text)
+    else:
+        print(text)
+
+
+if __name__ == "__main__":
+    main()

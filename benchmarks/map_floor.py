@@ -42,7 +42,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import load_dataset  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.pose import so3_log  # noqa: E402
 from hgsloc_plugin.render import Renderer  # noqa: E402
 from tests.reference.render_torch import window_map  # noqa: E402
 
@@ -51,12 +50,6 @@ LINE = np.linspace(-0.5, 1.5, 9)
 LEVELS = ((0.25, 0.1), (1.0, 0.5), (3.0, 1.0))
 #: part 1's priors per query (2 % of depth / 1 deg off) whose median accepted result is taken as the minimum
 MINIMUM_DRAWS = 3
-
-
-def offset(pose: hp.Pose, target: hp.Pose) -> np.ndarray:
-    """[6] xi = (w, v) with ``pose.perturbed_in_camera(w, v) == target``."""
-    dR = target.R @ pose.R.T
-    return np.concatenate([so3_log(dR), target.tvec - dR @ pose.tvec])
 
 
 def mahalanobis(xi: np.ndarray, cov: np.ndarray | None) -> float:
@@ -134,7 +127,7 @@ def floor_part(name: str, cam, scene, queries, bg) -> tuple[list[str], list]:
             continue
         errs = np.array([cm_eq(r.pose.errors_to(gt)[0], depth) for r in found])
         best = found[int(np.argsort(errs)[len(errs) // 2])]
-        xi = offset(best.pose, gt)
+        xi = best.pose.offset_in_camera(gt)
         c = renderer.window_cost(cam, [best.pose, gt], Renderer.upload_window_query(img), bg)
         cs = 1.0 - c[:, 0] / c[:, 1]
         lm = line_minima(renderer, cam, img, best.pose, xi, bg)
@@ -168,7 +161,7 @@ def decision_part(name: str, cam, scene, queries, bg, draws: int) -> list[str]:
                 move = cm_eq(prior.errors_to(r.search_pose)[0], depth)
                 rows.append(dict(q=i, level=f"{cm:g} cm / {deg:g} deg", e0=(cm_eq(t0, depth), a0),
                                  e1=(cm_eq(t1, depth), a1), move=move,
-                                 maha=mahalanobis(offset(r.search_pose, prior), r.covariance),
+                                 maha=mahalanobis(r.search_pose.offset_in_camera(prior), r.covariance),
                                  sig=r.assessment.significance, accepted=r.accepted))
     worse = lambda d: d["e1"][0] > d["e0"][0] + 1.0 or d["e1"][1] > d["e0"][1] + 0.5  # noqa: E731
     lines = [f"\n### {name}: what the refiner sees vs whether its pose is worse ({len(rows)} searches)\n",

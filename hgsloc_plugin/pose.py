@@ -201,6 +201,12 @@ class Pose:
         dR = so3_exp(rot_vec)
         return Pose(rotmat_to_qvec(dR @ self.R), dR @ self.tvec + np.asarray(trans, dtype=np.float64))
 
+    def offset_in_camera(self, other: Pose) -> np.ndarray:
+        """The camera-frame motion [6] = (rotation vector [3] rad, translation [3]) that takes this pose to ``other``:
+        ``self.perturbed_in_camera(xi[:3], xi[3:]) == other`` (the inverse of :meth:`perturbed_in_camera`)."""
+        dR = other.R @ self.R.T
+        return np.concatenate([so3_log(dR), other.tvec - dR @ self.tvec])
+
     def errors_to(self, other: Pose) -> tuple[float, float]:
         """(camera-centre distance, rotation angle in degrees) between this pose and ``other``."""
         return float(np.linalg.norm(self.centre() - other.centre())), rotation_angle_deg(other.R, self.R)

@@ -158,6 +158,21 @@ def test_rotation_angle_small_and_exact():
         assert rotation_angle_deg(np.eye(3), R) == pytest.approx(deg, rel=1e-9)
 
 
+def test_offset_in_camera_inverts_perturbed_in_camera():
+    rng = np.random.default_rng(4)
+    for k in range(20):
+        base = Pose.identity().perturbed_in_camera(rng.normal(size=3), rng.normal(size=3) * 3)
+        # rotations up to near pi (the log's hard end) and translations of any size
+        w = rng.normal(size=3)
+        w *= (0.05 + 3.0 * k / 20) / np.linalg.norm(w)
+        v = rng.normal(size=3) * 2
+        xi = base.offset_in_camera(base.perturbed_in_camera(w, v))
+        np.testing.assert_allclose(xi, np.concatenate([w, v]), atol=1e-9)
+        other = Pose.identity().perturbed_in_camera(rng.normal(size=3), rng.normal(size=3))
+        back = base.perturbed_in_camera(*np.split(base.offset_in_camera(other), 2))
+        np.testing.assert_allclose(back.matrix(), other.matrix(), atol=1e-9)
+
+
 def test_camera_scaling_and_colmap_models():
     cam = Camera(640, 480, 525.0, 526.0, 320.0, 240.0)
     s = cam.scaled(0.25)

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..pose import Pose, so3_log
+from ..pose import Pose
 
 MIN_SIGNIFICANCE = 1.0
 #: per-axis standard deviation of a prior, in units of its expected (median) error; 2 / 1.54 (see above)
@@ -88,8 +88,7 @@ def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float
         t_p - R_p R^T t)``, whose ``v`` is the camera-frame shift of the centre, so an isotropic prior on the
         centre and on the rotation is diagonal: ``xi = (P + C^-1)^-1 P xi_p`` with ``P`` the prior's information.
     """
-    dR = prior.R @ pose.R.T
-    xp = np.concatenate([so3_log(dR), prior.tvec - dR @ pose.tvec])
+    xp = pose.offset_in_camera(prior)
     info = np.zeros(6)
     if prior_error_deg is not None:
         info[:3] = (PRIOR_SPREAD * math.radians(prior_error_deg)) ** -2

@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import load_dataset  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.render import Renderer  # noqa: E402
 from tests.reference.render_torch import window_map  # noqa: E402
 
@@ -107,23 +108,20 @@ def cm_eq(t: float, depth: float) -> float:
     return t * 200.0 / depth
 
 
-def floor_part(name: str, cam, scene, queries, bg) -> tuple[list[str], list]:
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
-    renderer = Renderer(scene)
-    lines = [f"\n### {name}: the map's minimum per query ({scene.num_gaussians} Gaussians)\n",
+def floor_part(name: str, refiner: hp.HGSLocPlugin, cam, queries, bg) -> list[str]:
+    renderer = refiner.renderer
+    lines = [f"\n### {name}: the map's minimum per query ({refiner.renderer.n} Gaussians)\n",
              "| query | minimum: error cm-eq / deg | true pose: Mahalanobis | cs rise min -> truth | "
              "minimum on the line min (0) -> truth (1), per cost |", "|---|---|---|---|---|"]
-    minima = []
     for i, (_name, gt, img, depth) in enumerate(queries):
         rng = np.random.default_rng(500 + i)
         found = []
         for _ in range(MINIMUM_DRAWS):
-            r = refiner.refine(img, cam, gt.perturbed_in_camera(*_unit_pair(rng, np.radians(1.0), 0.02 * depth)))
+            r = refiner.refine(img, cam, se3_noise(gt, 1.0, 0.02 * depth, rng))
             if r.accepted:
                 found.append(r)
         if not found:
             lines.append(f"| {i} | no accepted refinement | | | |")
-            minima.append(None)
             continue
         errs = np.array([cm_eq(r.pose.errors_to(gt)[0], depth) for r in found])
         best = found[int(np.argsort(errs)[len(errs) // 2])]
@@ -136,23 +134,16 @@ def floor_part(name: str, cam, scene, queries, bg) -> tuple[list[str], list]:
                      f"{100 * (cs[1] / cs[0] - 1):+.1f} % | " + ", ".join(f"{k} {v:+.2f}" for k, v in lm.items())
                      + " |")
         print(lines[-1], flush=True)
-        minima.append(best)
-    return lines, minima
+    return lines
 
 
-def _unit_pair(rng, r: float, t: float) -> tuple[np.ndarray, np.ndarray]:
-    w, v = rng.normal(size=3), rng.normal(size=3)
-    return w / np.linalg.norm(w) * r, v / np.linalg.norm(v) * t
-
-
-def decision_part(name: str, cam, scene, queries, bg, draws: int) -> list[str]:
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+def decision_part(name: str, refiner: hp.HGSLocPlugin, cam, queries, draws: int) -> list[str]:
     rows = []
     for i, (_name, gt, img, depth) in enumerate(queries):
         for level, (cm, deg) in enumerate(LEVELS):
             rng = np.random.default_rng(700 + 10 * i + level)
             for _ in range(draws):
-                prior = gt.perturbed_in_camera(*_unit_pair(rng, np.radians(deg), cm / 200.0 * depth))
+                prior = se3_noise(gt, deg, cm / 200.0 * depth, rng)
                 r = refiner.refine(img, cam, prior)
                 if r.search_pose is None or r.assessment is None:
                     continue
@@ -221,9 +212,9 @@ def main() -> None:
             continue
         cam, scene, queries, bg = loaded
         queries = queries[:args.queries]
-        part, _ = floor_part(name, cam, scene, queries, bg)
-        lines += part
-        lines += decision_part(name, cam, scene, queries, bg, args.draws)
+        refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+        lines += floor_part(name, refiner, cam, queries, bg)
+        lines += decision_part(name, refiner, cam, queries, args.draws)
     lines.append(f"\nTotal {time.perf_counter() - t0:.0f} s.")
     text = "\n".join(lines) + "\n"
     if args.out:

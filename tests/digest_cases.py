@@ -1,0 +1,174 @@
+"""Frozen-behaviour cases: refinements on real photos (snow, both maps), lego and the demo room.
+
+Each case refines a few queries from seeded priors and records every field of the results (poses, costs,
+verdicts, render counts; wall time excluded). ``tests/test_digest.py`` compares a fresh run with the record in
+``tests/data/digests.json``; after a deliberate change of behaviour, regenerate it with
+``python -m tests.digest_cases --write``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+RECORD = Path(__file__).resolve().parent / "data" / "digests.json"
+
+
+def _camera(d: Path):
+    import hgsloc_plugin as hp
+
+    cj = json.loads((d / "camera.json").read_text())
+    return hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
+
+
+def _real_queries(name: str, limit: int):
+    """(camera, [(image name, true pose, image [H, W, 3])]) of ``../shared/data/<name>`` (RGBA on white)."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.image import load_image
+
+    d = DATA / name
+    out = []
+    for line in (d / "gt.txt").read_text().splitlines()[:limit]:
+        t = line.split()
+        gt = hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]])
+        out.append((t[0], gt, load_image(d / "queries" / t[0], background=(1.0, 1.0, 1.0) if name == "lego"
+                                         else (0.0, 0.0, 0.0))))
+    return _camera(d), out
+
+
+def _priors(truths, rot_deg: float, shift_of_depth: float, seed: int, scene, cam):
+    """Exact-magnitude priors: ``rot_deg`` degrees and ``shift_of_depth`` x the query's median depth."""
+    from hgsloc_plugin.noise import se3_noise
+    try:
+        from hgsloc_plugin.refine.plan import median_depth
+    except ImportError:  # before the refiner's split
+        from hgsloc_plugin.refine.refiner import median_depth
+
+    rng = np.random.default_rng(seed)
+    return [se3_noise(g, rot_deg, shift_of_depth * median_depth(scene, cam, g), rng) for g in truths]
+
+
+def _record(results) -> list[dict]:
+    out = []
+    for r in results:
+        d = r.to_dict()
+        d.pop("seconds")
+        for p in d["polish"]:
+            p.pop("seconds", None)
+        out.append(d)
+    return out
+
+
+def _real(ply: str, folder: str, limit: int, rows, config=None, **per_query):
+    import hgsloc_plugin as hp
+
+    scene = hp.GaussianScene.from_ply(DATA / folder / ply)
+    cam, qs = _real_queries(folder, limit)
+    refiner = hp.HGSLocPlugin(scene, config)
+    results = []
+    for rot, frac, seed in rows:
+        priors = _priors([g for _, g, _ in qs], rot, frac, seed, scene, cam)
+        for (n, _, img), p in zip(qs, priors):
+            results.append(refiner.refine(img, cam, p, name=n, **per_query))
+    return results
+
+
+def _room(config=None):
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.demo.queries import query_poses
+    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.noise import se3_noise
+
+    scene = make_room_scene(density=0.35)
+    cam = hp.Camera(160, 120, 140.0, 140.0, 80.0, 60.0)
+    refiner = hp.HGSLocPlugin(scene, config)
+    rng = np.random.default_rng(7)
+    results = []
+    for k, (gt, kw) in enumerate(zip(query_poses(4, seed=3), (
+            {}, {"prior_error": 0.03, "prior_error_deg": 1.0}, {"max_shift": 0.05}, {}))):
+        img = hp.render(scene, cam, gt)
+        prior = se3_noise(gt, 1.0 + 2.0 * (k == 3), 0.03 + 0.12 * (k == 3), rng)
+        results.append(refiner.refine(img, cam, prior, name=f"room{k}", **kw))
+    cost = hp.render_cost(scene, cam, query_poses(2, seed=3), hp.render(scene, cam, query_poses(1, seed=3)[0]),
+                          metric="sad")
+    return results, [float(c) for c in cost]
+
+
+def _pose_file():
+    """``refine_pose_file`` on three snow photos from an ACE-dialect file with inlier counts: the written pose
+    file and the report (wall times excluded)."""
+    import tempfile
+
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.pipeline import refine_pose_file
+
+    cam, qs = _real_queries("snow", 3)
+    scene = hp.GaussianScene.from_ply(DATA / "snow" / "snow.ply")
+    priors = _priors([g for _, g, _ in qs], 1.5, 0.03, 15, scene, cam)
+    with tempfile.TemporaryDirectory() as tmp:
+        src, out = Path(tmp) / "ace.txt", Path(tmp) / "refined.txt"
+        src.write_text("".join(f"{n} {' '.join(repr(float(v)) for v in (*p.qvec, *p.tvec))} 1.0 0.02 {2600 + 400 * k}\n"
+                               for k, ((n, _, _), p) in enumerate(zip(qs, priors))))
+        rep = refine_pose_file(scene, src, DATA / "snow" / "queries", lambda n, w, h: cam, out, progress=False)
+        text = out.read_text()
+    for q in rep["queries"].values():
+        q.pop("seconds", None)
+        for p in q.get("polish", []):
+            p.pop("seconds", None)
+    rep["totals"].pop("seconds")
+    for k in ("input", "output"):
+        rep.pop(k)
+    return [], [text, rep]
+
+
+CASES = {
+    # name: function returning a list of RefineResult (and optionally extra numbers)
+    "snow": lambda: _real("snow.ply", "snow", 6, [(1.0, 0.02, 11), (4.0, 0.08, 12)]),
+    "snow_sharp": lambda: _real("snow_sharp.ply", "snow", 6, [(1.0, 0.02, 13)], prior_error_depth=0.02,
+                                prior_error_deg=1.0),
+    "snow_search": lambda: _real("snow_sharp.ply", "snow", 3, [(4.0, 0.08, 16)], _config("search")),
+    "lego": lambda: _real("lego.ply", "lego", 5, [(1.0, 0.01, 14)], _config("default", background=(1.0, 1.0, 1.0))),
+    "room": _room,
+    "room_working_set": lambda: _room(_config("search", working_set_min=0, coarse_lod_pixels=2.0)),
+    "pose_file": _pose_file,
+}
+
+
+def _config(preset: str, **kw):
+    from hgsloc_plugin.refine import RefineConfig
+
+    return RefineConfig.preset(preset, **kw)
+
+
+def run_case(name: str) -> dict:
+    """The record of one case: its results' fields (JSON-ready), extra numbers and a digest of both."""
+    out = CASES[name]()
+    results, extra = out if isinstance(out, tuple) else (out, [])
+    rec = {"results": _record(results), "extra": extra}
+    blob = json.dumps(rec, sort_keys=True, default=repr).encode()
+    rec["digest"] = hashlib.sha256(blob).hexdigest()[:16]
+    return rec
+
+
+def main(argv: list[str]) -> int:
+    names = [a for a in argv if not a.startswith("--")] or list(CASES)
+    record = json.loads(RECORD.read_text()) if RECORD.exists() else {}
+    changed = 0
+    for name in names:
+        rec = run_case(name)
+        same = record.get(name, {}).get("digest") == rec["digest"]
+        changed += not same
+        print(f"{name}: {rec['digest']} ({'same as the record' if same else 'differs from the record'})")
+        record[name] = rec
+    if "--write" in argv:
+        RECORD.write_text(json.dumps(record, indent=1, sort_keys=True, default=repr) + "\n")
+    return 1 if changed and "--write" not in argv else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -10,15 +10,18 @@ import numpy as np
 
 def qvec_to_rotmat(q) -> np.ndarray:
     """Unit quaternion (w, x, y, z) [4] -> rotation matrix [3, 3] (Hamilton convention)."""
-    w, x, y, z = (float(v) for v in q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ],
-        dtype=np.float64,
-    )
+    return qvecs_to_rotmats(np.array([[float(v) for v in q]], dtype=np.float64))[0]
+
+
+def qvecs_to_rotmats(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) [N, 4] -> rotation matrices [N, 3, 3] float64 (Hamilton convention)."""
+    q = np.asarray(q, dtype=np.float64)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
 
 
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ it, 2-3x those seen by the poses actually scored (975k-Gaussian room: 368k vs ab
 and, when a batch has a pose outside that region, selects again around that batch. Each selection is the
 conservative test of ``kernels/cull.py`` and keeps the resident order, so every image and cost equals the
 whole map's bit for bit, whichever selection rendered it (a batch that does not fit one region is rendered
-from the whole map). The workspaces are the parent renderer's (``render._Pool``), so a re-selection costs
+from the whole map). The workspaces are the parent renderer's (``render.buffers.Pool``), so a re-selection costs
 one pass over the map's centres and a gather, no allocation.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from .camera import Camera
 from .pose import Pose, rotation_angle_deg
-from .render import Renderer
+from .render import RendererLike
 
 
 def mean_pose(poses: list[Pose]) -> Pose:
@@ -47,7 +47,7 @@ class WorkingSet:
         fit one region); largest: the largest selection's size.
     """
 
-    def __init__(self, renderer: Renderer, cameras: list[Camera], radius_t: float, radius_r_deg: float):
+    def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_t: float, radius_r_deg: float):
         if not (radius_t > 0 and radius_r_deg > 0):
             raise ValueError(f"working-set radii must be > 0, got {radius_t}, {radius_r_deg}")
         self.full = renderer
@@ -57,11 +57,18 @@ class WorkingSet:
         self.selections = 0
         self.fallback_poses = 0
         self.largest = 0
-        self._sub: Renderer | None = None
+        self._sub: RendererLike | None = None
         self._centre: Pose | None = None
 
-    upload_window_query = staticmethod(Renderer.upload_window_query)
-    upload_image = staticmethod(Renderer.upload_image)
+    @property
+    def config(self):
+        return self.full.config
+
+    def upload_window_query(self, image: np.ndarray):
+        return self.full.upload_window_query(image)
+
+    def upload_image(self, image: np.ndarray):
+        return self.full.upload_image(image)
 
     @property
     def n(self) -> int:
@@ -73,7 +80,7 @@ class WorkingSet:
         return all(np.linalg.norm(p.centre() - c0) <= self.radius_t and rotation_angle_deg(R0, p.R) <= self.radius_r
                    for p in poses)
 
-    def covering(self, poses: list[Pose]) -> Renderer:
+    def covering(self, poses: list[Pose]) -> RendererLike:
         """A renderer whose images of ``poses`` equal the whole map's: the current selection when its region
         holds them all, else a new selection around them (or the whole map when they do not fit one region)."""
         if self._centre is not None and self._inside(self._centre, poses):

@@ -386,5 +386,5 @@ def test_derivative_pass_tiling_changes_no_number(name):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(got.pose_gradient(cam, poses, q), ref.pose_gradient(cam, poses, q)):
         np.testing.assert_array_equal(a, b)
-    tiles = [r._workspace(cam, 3, grad=True).bufs["tiles"] for r in (got, ref)]
+    tiles = [r._workspace(cam, 3, grad=True).tiles for r in (got, ref)]
     assert tiles[0][0] > tiles[1][0]  # the lists really were binned differently

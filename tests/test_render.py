@@ -93,8 +93,8 @@ def test_tile_lists_match_reference_binning():
     r = get_renderer(scene)
     r.render_full(cam, [T])
     ws = r._workspace(cam, 1)
-    starts = read_rows(ws.bufs["tile_start"], 1)[0]  # torch tensors with the parallel sort (CUDA)
-    isect = read_rows(r._pool.isect, int(starts[-1]))
+    starts = read_rows(ws.tile_start, 1)[0]  # torch tensors with the parallel sort (CUDA)
+    isect = read_rows(r.pool.lists.isect, int(starts[-1]))
     ref = bin_tiles(project(scene, cam, T.matrix()), cam)
     assert len(starts) == len(ref) + 1
     for t, ids in enumerate(ref):

@@ -22,8 +22,8 @@ def renderers(scene, **kw):
 def lists(r, cam, n_poses, grad=False):
     """(tile_start [B, T + 1], the B poses' entries of isect) of a renderer's last binning at ``cam``."""
     ws = r._workspace(cam, n_poses, grad=grad)
-    starts = read_rows(ws.bufs["tile_start"], n_poses)
-    return starts, read_rows(r._pool.isect, int(starts[:, -1].sum()))
+    starts = read_rows(ws.tile_start, n_poses)
+    return starts, read_rows(r.pool.lists.isect, int(starts[:, -1].sum()))
 
 
 def test_parallel_lists_match_reference_binning():
@@ -118,7 +118,7 @@ def test_sort_mode_per_backend(monkeypatch, caplog):
     import importlib
     import logging
 
-    render = importlib.import_module("hgsloc_plugin.render")  # the package's ``render`` is the function
+    render = importlib.import_module("hgsloc_plugin.render.buffers")
 
     assert render.sort_mode("auto", "cpu") == "serial"
     assert render.sort_mode("parallel", "cpu") == "parallel"

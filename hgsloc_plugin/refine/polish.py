@@ -31,7 +31,7 @@ import numpy as np
 from ..camera import Camera
 from ..costs import cost_from_window
 from ..pose import Pose
-from ..render import Renderer
+from ..render import RendererLike
 
 LAMBDA0 = 1e-3
 LAMBDA_MIN = 1e-7
@@ -85,7 +85,7 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
     return f * float(np.linalg.norm(xi[:3])) + f * float(np.linalg.norm(xi[3:])) / max(depth, 1e-12)
 
 
-def polish(renderer: Renderer, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
+def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
            min_step_px: float = MIN_STEP_PX, max_failures: int = 3,
            line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:

@@ -8,7 +8,7 @@ from ..camera import Camera
 from ..costs import WINDOW_METRICS, cost_from_stats, cost_from_window
 from ..image import resize_image
 from ..pose import Pose
-from ..render import Renderer
+from ..render import RendererLike
 
 
 class Scorer:
@@ -18,7 +18,7 @@ class Scorer:
     resolution; window metrics (cs, ssim) in a follow-up kernel on the rendered images, which stay on the device.
     """
 
-    def __init__(self, renderer: Renderer, metric: str, background, mask_alpha: float):
+    def __init__(self, renderer: RendererLike, metric: str, background, mask_alpha: float):
         self.renderer = renderer
         self.metric = metric
         self.background = tuple(background)

@@ -1,0 +1,93 @@
+"""The pose-derivative path: images with their derivatives in the pose increment, and the cs cost's gradient.
+
+``xi = (w, v)`` is the increment of ``Pose.perturbed_in_camera(w, v)`` (rotation, then camera-frame shift). The
+kernels are ``kernels/pose_grad.py`` (per-Gaussian derivative records, derivative blending) and
+``kernels/window_grad.py`` (the windowed cs cost's gradient and Gauss-Newton system).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+from ..costs import cost_from_window
+from ..kernels import window, window_grad
+from ..kernels.pose_grad import NXI, blend_grad_kernel, projection_grad_kernel
+from ..pose import Pose
+from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
+
+
+def derivative_workspace(r, camera: Camera, batch: int) -> DerivativeWorkspace:
+    """The derivative pass's image-sized buffers at ``camera``'s size (grown when ``batch`` needs more), with the
+    pool's derivative records sized for it."""
+    key = (camera.width, camera.height)
+    ws = r.pool.derivative_workspaces.get(key)
+    if ws is None or ws.batch < batch:
+        batch = max(batch, ws.batch if ws is not None else 0)
+        ws = DerivativeWorkspace.allocate(batch, camera.height, camera.width)
+        r.pool.derivative_workspaces[key] = ws
+    r.pool.derivative_records_for(ws.batch, r.n)
+    return ws
+
+
+def derivative_images(r, camera: Camera, part: list[Pose], background) -> DerivativeWorkspace:
+    """Geometry, derivative records and derivative blending of up to ``r.grad_chunk`` poses; the images stay on
+    the device (``rgb``, ``alpha``, ``drgb`` of the returned workspace)."""
+    ws = r._workspace(camera, len(part), grad=True)
+    r._geometry(camera, part, ws, background)
+    g = derivative_workspace(r, camera, min(r.grad_chunk, len(part)))
+    rec, drec, gs = r.pool.records, r.pool.derivative_records, r.gaussians
+    n = len(part)
+    projection_grad_kernel(r.config)(gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n,
+                                     rec.ntiles, drec.dpacked)
+    # one task per pixel on every backend: a tile-parallel twin measured slower on the CPU (the derivative
+    # arithmetic, not the rejected pairs, dominates; benchmarks/render.py)
+    tx, _ = ws.tiles
+    blend_grad_kernel(r.config)(rec.packed, drec.dpacked, ws.tile_start, r.pool.lists.isect, ws.isect_base,
+                                ws.background, tx, n, g.rgb, g.alpha, g.drgb)
+    return g
+
+
+def render_derivatives(r, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+    """Colour [B, H, W, 3], alpha [B, H, W] and d colour / d xi [B, H, W, 3, 6] of each pose (float32)."""
+    rgbs, alphas, ders = [], [], []
+    for part in r._chunks(poses, r.grad_chunk):
+        g = derivative_images(r, camera, part, background)
+        n = len(part)
+        rgbs.append(read_rows(g.rgb, n))
+        alphas.append(read_rows(g.alpha, n))
+        ders.append(read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
+    return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
+
+
+def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0):
+    """cs cost [B], its gradient [B, 6] and Gauss-Newton Hessian [B, 6, 6] in ``xi`` (float64) of each pose
+    against the query statistics ``qstats`` [H, W, 3, window.NQ]."""
+    costs, grads, hessians = [], [], []
+    iu = np.triu_indices(NXI)
+    for part in r._chunks(poses, r.grad_chunk):
+        g = derivative_images(r, camera, part, background)
+        n = len(part)
+        if g.window is None:
+            g.window = WindowGradBuffers.allocate(*g.alpha.shape)
+        w = g.window
+        window.horizontal_kernel()(g.rgb, qstats, n, w.h)
+        window_grad.cs_terms_kernel()(w.h, qstats, g.alpha, float(mask_alpha), n, w.wts, w.means, w.rows)
+        filt = window_grad.filter_kernel
+        filt(1, False, 3 * NXI)(g.drgb, n, w.tmpj)
+        filt(0, False, 3 * NXI)(w.tmpj, n, w.jbar)
+        filt(0, True, 6)(w.wts, n, w.tmp6)
+        filt(1, True, 6)(w.tmp6, n, w.hat)
+        window_grad.system_kernel()(g.rgb, qstats, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.sys)
+        r._reduce(w.rows, n, w.out2)
+        r._reduce(w.sys, n, w.outs)
+        sums = read_rows(w.out2, n)
+        sys = read_rows(w.outs, n)
+        scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
+        hess = np.zeros((n, NXI, NXI))
+        hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]
+        hess = hess + np.triu(hess, 1).transpose(0, 2, 1)
+        costs.append(cost_from_window(sums))
+        grads.append(sys[:, window_grad.NH:] * scale[:, None])
+        hessians.append(hess * scale[:, None, None])
+    return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)

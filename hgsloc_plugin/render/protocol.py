@@ -1,0 +1,52 @@
+"""What the refinement needs of a renderer: the seam a second backend (or a batched renderer) plugs into."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..camera import Camera
+from ..kernels import RasterConfig
+from ..pose import Pose
+
+
+@runtime_checkable
+class RendererLike(Protocol):
+    """A scene's Gaussians, rendered and scored in batches of world-to-camera poses.
+
+    Implemented by :class:`~hgsloc_plugin.render.Renderer` and :class:`~hgsloc_plugin.working_set.WorkingSet`;
+    the scorer, the polish, the working set, the level of detail and ``hgsloc check`` use only these.
+    """
+
+    config: RasterConfig
+
+    @property
+    def n(self) -> int:
+        """Gaussians rendered."""
+
+    def upload_image(self, image: np.ndarray) -> object:
+        """A comparison image [H, W, 3] float in [0, 1] on the device (for :meth:`cost_stats`)."""
+
+    def upload_window_query(self, image: np.ndarray) -> object:
+        """A query's windowed statistics on the device (for :meth:`window_cost`, :meth:`pose_gradient`)."""
+
+    def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W] (float32)."""
+
+    def cost_stats(self, camera: Camera, poses: list[Pose], target, background=(0.0, 0.0, 0.0),
+                   mask_alpha: float = 0.0) -> np.ndarray:
+        """Photometric statistics [B, Stat.SIZE] float64 of each rendering against ``target``."""
+
+    def window_cost(self, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0),
+                    mask_alpha: float = 0.0, luminance: bool = False) -> np.ndarray:
+        """[B, 2] float64: sum of the windowed similarity over valid pixels, and their count."""
+
+    def pose_gradient(self, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0),
+                      mask_alpha: float = 0.0):
+        """cs cost [B], gradient [B, 6], Gauss-Newton Hessian [B, 6, 6] in ``xi = (w, v)`` (float64)."""
+
+    def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float,
+                    max_rotation_deg: float) -> RendererLike:
+        """A renderer of the Gaussians some pose within the region around ``pose`` can see (same images)."""

@@ -1,0 +1,334 @@
+"""The renderer: one scene's Gaussians resident on the Taichi device, rendered and scored in batches of poses.
+
+All poses of one call go through each kernel stage in one launch (the batch is a leading dimension); a batch
+larger than ``RasterConfig.max_batch_elements`` (poses x Gaussians) is split into chunks. Workspaces are reused
+per image size, so repeated calls neither re-upload the scene nor recompile (kernels take ndarrays of any shape).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import taichi as ti
+
+from ..backend import current_arch
+from ..camera import Camera
+from ..kernels import RasterConfig, cull, window
+from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
+from ..kernels.layout import Stat
+from ..kernels.projection import projection_kernel
+from ..kernels.tile_sort import bin_parallel, count_kernel, tile_sort_kernel
+from ..pose import Pose
+from ..scene import GaussianScene
+from . import derivatives
+from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, read_rows, sort_mode
+from .prepare import DeviceGaussians, upload
+
+
+class Renderer:
+    """One scene's Gaussians resident on the Taichi device (``RendererLike``).
+
+    It holds no reference to the :class:`GaussianScene`, so a cache keyed by the scene (``get_renderer``) lets the
+    scene go when its caller drops it. Poses are world-to-camera; images float32, costs float64.
+
+    Example:
+        >>> r = Renderer(scene)
+        >>> rgb, alpha, depth = r.render_full(camera, [T1, T2])        # [2, H, W, 3], [2, H, W], [2, H, W]
+    """
+
+    MIN_WORKSPACE = 14  # poses: a search expansion's children (12 moves, a pattern move) fit
+
+    def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
+        current_arch()
+        self.config = config or RasterConfig()
+        if scene.num_gaussians == 0:
+            raise ValueError("scene has no Gaussians")
+        self.sh_degree = scene.sh_degree
+        self.gaussians = DeviceGaussians.from_scene(scene)
+        self.pool = Pool()
+        self._project = projection_kernel(self.config, self.sh_degree)
+        self._count = count_kernel()
+        self._sort = tile_sort_kernel(self.config)
+        mode = self.config.blend
+        if mode == "auto":
+            mode = "pixel" if current_arch() == "cuda" else "splat"
+        self.blend_mode = mode
+        if mode == "splat":
+            self._blend_img, self._blend_cost = splat_image_kernel(self.config), splat_cost_kernel(self.config)
+        else:
+            self._blend_img, self._blend_cost = image_kernel(self.config), cost_kernel(self.config)
+        self._reduce = reduce_kernel()
+        self.sort_mode = sort_mode(self.config.sort, current_arch())
+
+    # ---- the Gaussians: subsets share this renderer's kernels and pool ----
+
+    @property
+    def n(self) -> int:
+        """Resident Gaussians."""
+        return self.gaussians.n
+
+    @property
+    def source_index(self) -> np.ndarray:
+        """[n]: scene index of each resident Gaussian (-1: none)."""
+        return self.gaussians.source_index
+
+    def with_gaussians(self, gaussians: DeviceGaussians) -> Renderer:
+        """A renderer of other Gaussians with this one's config, compiled kernels and pool."""
+        other = object.__new__(Renderer)
+        other.__dict__.update(self.__dict__)
+        other.gaussians = gaussians
+        return other
+
+    def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float, max_rotation_deg: float
+                    ) -> Renderer:
+        """A renderer of the Gaussians that some pose of a region can see (``kernels/cull.py``).
+
+        Args:
+            cameras: every camera (size, intrinsics) the caller will render with.
+            pose: the region's centre pose (world-to-camera).
+            max_shift / max_rotation_deg: camera-centre shift (scene units) and rotation (degrees) bounding it.
+
+        Returns:
+            A renderer of the kept Gaussians (same order; on the device, only the index list crosses), or ``self``
+            when nearly all are kept (or none). Its images and costs equal this renderer's bit for bit for every
+            pose of the region.
+        """
+        g = self.gaussians
+        rows, fac = cull.planes(cameras, self.config)
+        keep = ti.ndarray(ti.i32, (self.n,))
+        cull.keep_kernel(self.config)(g.means, g.smax, g.opacities, upload(pose.matrix34().astype(np.float64), ti.f64),
+                                      upload(np.array(rows, np.float64), ti.f64),
+                                      upload(np.array(fac, np.float64), ti.f64), float(max_shift),
+                                      float(np.radians(max_rotation_deg)), keep)
+        idx = np.flatnonzero(keep.to_numpy()).astype(np.int32)
+        if idx.size >= 0.95 * self.n or idx.size == 0:
+            return self
+        return self.subset(idx)
+
+    def subset(self, idx: np.ndarray) -> Renderer:
+        """A renderer of the resident Gaussians ``idx`` [M] (increasing resident indices), gathered on the
+        device; its ``source_index`` maps them to the scene."""
+        idx = np.asarray(idx, np.int32)
+        if idx.ndim != 1 or idx.size == 0 or np.any(np.diff(idx) <= 0) or idx[0] < 0 or idx[-1] >= self.n:
+            raise ValueError("subset indices must be a non-empty increasing list of Gaussian indices")
+        nd_idx = upload(idx, ti.i32)
+        gathered = {}
+        for name in DeviceGaussians.FIELDS:
+            src = getattr(self.gaussians, name)
+            dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
+            cull.gather_kernel(len(src.shape))(src, nd_idx, dst)
+            gathered[name] = dst
+        return self.with_gaussians(DeviceGaussians(**gathered, source_index=self.source_index[idx]))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Host copies of the resident Gaussians, in resident order: ``means`` [n, 3], ``cov3d`` [n, 6]
+        (xx, xy, xz, yy, yz, zz), ``opacities`` [n], ``sh`` [n, K, 3], ``smax`` [n] (bound on the std. dev.)."""
+        return self.gaussians.to_arrays()
+
+    def derived(self, arrays: dict[str, np.ndarray], source_index: np.ndarray) -> Renderer:
+        """A renderer of other Gaussians (``arrays`` as from :meth:`arrays`, resident in the order given) with
+        this one's config, kernels and pool; ``source_index`` [m]: scene index per Gaussian (-1: none)."""
+        if len(arrays["means"]) == 0:
+            raise ValueError("no Gaussians")
+        return self.with_gaussians(DeviceGaussians.from_arrays(arrays, source_index))
+
+    # ---- workspaces and geometry (projection + tile sort) ----
+
+    @property
+    def chunk(self) -> int:
+        """Poses per launch."""
+        return max(1, self.config.max_batch_elements // self.n)
+
+    def _chunks(self, poses: list[Pose], size: int | None = None):
+        """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""
+        c = size or self.chunk
+        for s in range(0, len(poses), c):
+            yield poses[s:s + c]
+
+    def _workspace(self, camera: Camera, batch: int, grad: bool = False) -> Workspace:
+        """The buffers for up to ``batch`` poses at ``camera``'s size and tiling (``grad``: the derivative pass's,
+        ``RasterConfig.grad_tile_size``): one per size, reused by every call that fits and grown when one needs
+        more (re-allocating per batch size cost more than the renders of a search expansion)."""
+        ts = self.config.grad_tile_size if grad else self.config.tile_size
+        key = (camera.width, camera.height, ts)
+        ws = self.pool.workspaces.get(key)
+        if ws is None or ws.batch < batch:
+            B = max(batch, min(self.chunk, self.MIN_WORKSPACE), ws.batch if ws is not None else 0)
+            ws = Workspace.allocate(B, camera.width, camera.height, ts, self.sort_mode == "parallel")
+            self.pool.workspaces[key] = ws
+        self.pool.projection_records(ws.batch, self.n, self.sort_mode == "parallel")
+        return ws
+
+    def _geometry(self, camera: Camera, poses: list[Pose], ws: Workspace, background) -> None:
+        """Projection and tile sort for up to ``ws.batch`` poses, binned at the workspace's tile size, into the
+        pool's records and tile lists."""
+        B = len(poses)
+        rec = self.pool.records
+        g = self.gaussians
+        vm = np.zeros((ws.batch, 3, 4), np.float32)
+        cp = np.zeros((ws.batch, 3), np.float32)
+        for k, T in enumerate(poses):
+            vm[k] = T.matrix34()
+            cp[k] = T.centre()
+        ws.viewmats.from_numpy(vm)
+        ws.campos.from_numpy(cp)
+        ws.intrin.from_numpy(np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
+        ws.extent.from_numpy(np.array([cull.extent_coefficient(*cull.jacobian_limits(camera)),
+                                       cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
+        ws.background.from_numpy(np.asarray(background, np.float32).reshape(3))
+        tx, ty = ws.tiles
+        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.campos, ws.intrin, camera.width,
+                      camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
+        parallel = self.sort_mode == "parallel"
+        if parallel:
+            def scratch(m: int):
+                lists = self.pool.tile_lists(m, parallel=True)
+                return lists.keys, lists.ids, lists.isect
+
+            totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, B, self.n, tx, tx * ty, scratch, ws.tile_start)
+        else:
+            self._count(rec.ntiles, B, self.n, ws.totals)
+            totals = read_rows(ws.totals, B)
+        base = np.zeros(ws.batch, np.int64)
+        base[1:B] = np.cumsum(totals)[:-1]
+        ws.isect_base.from_numpy(base)
+        if not parallel:
+            isect = self.pool.tile_lists(int(totals.sum()), parallel=False).isect
+            self._sort(rec.depth, rec.rect, rec.ntiles, ws.isect_base, tx, ty, B, self.n, rec.keys_a, rec.keys_b,
+                       rec.ids_a, rec.ids_b, rec.rects, ws.hist, ws.cursor, ws.tile_start, isect)
+
+    # ---- images and costs ----
+
+    def _blend_images(self, camera: Camera, part: list[Pose], background, batch: int) -> Workspace:
+        """Geometry and image blending of up to one chunk of poses; the images stay on the device
+        (``ws.images``). ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
+        ws = self._workspace(camera, batch)
+        if ws.images is None:
+            ws.images = ImageBuffers.allocate(ws.batch, camera.height, camera.width)
+        self._geometry(camera, part, ws, background)
+        tx, ty = ws.tiles
+        im = ws.images
+        head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
+        if self.blend_mode == "splat":
+            self._blend_img(*head, ty, len(part), im.rgb, im.alpha, im.dimg)
+        else:
+            self._blend_img(*head, len(part), im.rgb, im.alpha, im.dimg)
+        return ws
+
+    def visible(self, camera: Camera, poses: list[Pose]) -> np.ndarray:
+        """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n], in the
+        order of ``source_index`` (scene indices)."""
+        out = []
+        for part in self._chunks(poses):
+            ws = self._workspace(camera, min(len(poses), self.chunk))
+            self._geometry(camera, part, ws, (0.0, 0.0, 0.0))
+            out.append(read_rows(self.pool.records.ntiles, len(part)) > 0)
+        return np.concatenate(out)
+
+    def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""
+        rgbs, alphas, depths = [], [], []
+        for part in self._chunks(poses):
+            im = self._blend_images(camera, part, background, min(len(poses), self.chunk)).images
+            n = len(part)
+            rgbs.append(read_rows(im.rgb, n))
+            alphas.append(read_rows(im.alpha, n))
+            depths.append(read_rows(im.dimg, n))
+        return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(depths)
+
+    @staticmethod
+    def upload_image(image: np.ndarray) -> ti.Ndarray:
+        """A comparison image [H, W, 3] (float32 in [0, 1]) on the device, for :meth:`cost_stats`."""
+        image = np.ascontiguousarray(image, dtype=np.float32)
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"comparison image must be [H, W, 3], got {image.shape}")
+        return upload(image, ti.f32)
+
+    @staticmethod
+    def upload_window_query(image: np.ndarray) -> ti.Ndarray:
+        """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
+        ([H, W, 3, window.NQ]; ``image`` [H, W, 3] float in [0, 1])."""
+        q = Renderer.upload_image(image)
+        H, W = q.shape[:2]
+        out = ti.ndarray(ti.f32, (H, W, 3, window.NQ))
+        window.query_stats_kernel()(q, out)
+        return out
+
+    def window_cost(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
+                    mask_alpha: float = 0.0, luminance: bool = False) -> np.ndarray:
+        """Windowed structural similarity of each pose's rendering with the query: [B, 2] float64, the sum over
+        valid pixels of the per-pixel value (``cs``, or full SSIM when ``luminance``) and the valid pixel count.
+
+        Args:
+            qstats: from :meth:`upload_window_query`, at the camera's size.
+        """
+        _check_query_size(qstats, camera)
+        out = []
+        for part in self._chunks(poses):
+            ws = self._blend_images(camera, part, background, min(len(poses), self.chunk))
+            im = ws.images
+            if ws.window is None:
+                ws.window = WindowBuffers.allocate(ws.batch, camera.height, camera.width)
+            w = ws.window
+            n = len(part)
+            window.horizontal_kernel()(im.rgb, qstats, n, w.h)
+            window.vertical_cost_kernel(bool(luminance))(w.h, qstats, im.alpha, float(mask_alpha), n, w.rows)
+            self._reduce(w.rows, n, w.out)
+            out.append(read_rows(w.out, n))
+        return np.concatenate(out)
+
+    def cost_stats(self, camera: Camera, poses: list[Pose], target: ti.Ndarray, background=(0.0, 0.0, 0.0),
+                   mask_alpha: float = 0.0) -> np.ndarray:
+        """Photometric statistics of each pose's rendering against ``target``: [B, Stat.SIZE] float64
+        (``kernels.layout.Stat``: n_valid, SAD, SSD, per-channel sums).
+
+        Args:
+            target: the comparison image from :meth:`upload_image`, at the camera's size.
+        """
+        if tuple(target.shape) != (camera.height, camera.width, 3):
+            raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
+                             f"({camera.height}, {camera.width}, 3)")
+        out = []
+        for part in self._chunks(poses):
+            ws = self._workspace(camera, min(len(poses), self.chunk))
+            tx, ty = ws.tiles
+            if ws.stats is None:
+                rows = ty if self.blend_mode == "splat" else camera.height
+                ws.stats = StatBuffers(ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE)),
+                                       ti.ndarray(ti.f64, (ws.batch, Stat.SIZE)))
+            self._geometry(camera, part, ws, background)
+            head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
+            if self.blend_mode == "splat":
+                self._blend_cost(*head, ty, len(part), target, float(mask_alpha), ws.stats.runs)
+            else:
+                self._blend_cost(*head, len(part), target, float(mask_alpha), ws.stats.runs)
+            self._reduce(ws.stats.runs, len(part), ws.stats.stats)
+            out.append(read_rows(ws.stats.stats, len(part)))
+        return np.concatenate(out)
+
+    # ---- pose derivatives (``render/derivatives.py``) ----
+
+    @property
+    def grad_chunk(self) -> int:
+        """Poses per derivative launch (the per-Gaussian derivative records take 30 floats per pose)."""
+        return max(1, min(4, 4_000_000 // self.n))
+
+    def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W] and the colour's derivatives [B, H, W, 3, 6] with respect to the
+        pose increment ``xi = (w, v)`` (``Pose.perturbed_in_camera(w, v)``)."""
+        return derivatives.render_derivatives(self, camera, poses, background)
+
+    def pose_gradient(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
+                      mask_alpha: float = 0.0):
+        """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
+        grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``: from
+        :meth:`upload_window_query` at the camera's size; the cost equals :meth:`window_cost`'s ``1 - mean``."""
+        _check_query_size(qstats, camera)
+        return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha)
+
+
+def _check_query_size(qstats, camera: Camera) -> None:
+    if tuple(qstats.shape[:2]) != (camera.height, camera.width):
+        raise ValueError(f"query statistics are {tuple(qstats.shape[:2])}, camera needs "
+                         f"({camera.height}, {camera.width})")

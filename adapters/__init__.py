@@ -1,10 +1,12 @@
-"""Adapters: read and write the pose files of ACE, Marepo, HLoc and friends; intrinsics; the HLoc step.
+"""Adapters: read and write the pose files of ACE, Marepo, HLoc and friends (``dialects``), intrinsics, and a
+localizer's confidence.
 
 Conversions between the localizers' conventions and ours happen here and nowhere else.
 """
 
+from .dialects import read_poses
 from .names import canonical_name, match_names, resolve_image
-from .posefile import DIALECTS, PoseFile, Record, read_poses, write_poses
+from .posefile import DIALECTS, PoseFile, Record, write_poses
 
 __all__ = ["DIALECTS", "PoseFile", "Record", "canonical_name", "match_names", "read_poses", "resolve_image",
            "write_poses"]

@@ -32,6 +32,8 @@ from __future__ import annotations
 import bisect
 import math
 
+from hgsloc_plugin.prior import QueryPrior
+
 #: lower edges of the inlier-count bins
 INLIER_EDGES = (0, 1000, 1500, 2000, 2500, 3000, 3500, 4000)
 #: 99th percentile per bin of ACE + GLACE 7-Scenes errors against the SfM pGT: camera centre (cm), rotation (deg)
@@ -71,15 +73,15 @@ def inlier_prior_error(inliers: float) -> tuple[float, float] | None:
     return None if i is None else (MEDIAN_CM[i] / 100.0 / REFERENCE_DEPTH, MEDIAN_DEG[i])
 
 
-def inlier_trust(inliers: float) -> dict:
-    """``Refiner.refine`` keywords for a pose with ``inliers`` RANSAC inliers: its trust region
-    (``max_shift_depth``, ``max_rotation_deg``) and expected error (``prior_error_depth``, ``prior_error_deg``);
-    {} when the count is unusable."""
+def inlier_trust(inliers: float) -> QueryPrior:
+    """The settings of a query whose pose has ``inliers`` RANSAC inliers: its trust region (``max_shift_depth``,
+    ``max_rotation_deg``) and expected error (``prior_error_depth``, ``prior_error_deg``); none set when the
+    count is unusable."""
     region, error = inlier_region(inliers), inlier_prior_error(inliers)
     if region is None or error is None:
-        return {}
-    return dict(zip(("max_shift_depth", "max_rotation_deg", "prior_error_depth", "prior_error_deg"),
-                    region + error))
+        return QueryPrior()
+    return QueryPrior(max_shift_depth=region[0], max_rotation_deg=region[1], prior_error_depth=error[0],
+                      prior_error_deg=error[1])
 
 
 def _bin(inliers: float) -> int | None:

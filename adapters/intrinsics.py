@@ -7,8 +7,9 @@ from pathlib import Path
 
 from hgsloc_plugin.camera import Camera
 
+from .dialects import read_poses
 from .names import canonical_name
-from .posefile import PoseFile, read_poses
+from .posefile import PoseFile
 
 #: (name, image width, image height) -> Camera
 IntrinsicsFn = Callable[[str, int, int], Camera]

@@ -161,12 +161,9 @@ def detect_dialect(path: Path, lines: list[str]) -> str:
     raise ValueError(f"{path}: mixed record widths {sorted(counts)}; expected 8 (hloc), 9 (pgt) or 11 (ace)")
 
 
-def read_poses(path, dialect: str = "auto") -> PoseFile:
-    """Read a pose file; raises ValueError naming file and line for a malformed line.
-
-    Args:
-        path: the file. dialect: "auto", or one of ``DIALECTS``. A ``.json`` file is read as a 3DGS trainer's
-            ``cameras.json`` (``adapters/trainer.py``; written back in the generic dialect).
+def read_text_poses(path, dialect: str = "auto") -> PoseFile:
+    """Read a line-based pose file (``DIALECTS``; ``adapters.dialects.read_poses`` reads every format); raises
+    ValueError naming file and line for a malformed line.
 
     Returns:
         A :class:`PoseFile` (ordered mapping name -> world-to-camera Pose, w x y z quaternions).
@@ -174,10 +171,6 @@ def read_poses(path, dialect: str = "auto") -> PoseFile:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: pose file not found")
-    if path.suffix.lower() == ".json" and dialect in ("auto", "cameras_json"):
-        from .trainer import read_cameras_json
-
-        return read_cameras_json(path)
     text = path.read_bytes().decode("utf-8", errors="strict")  # not read_text: it would turn CRLF into LF
     bom = text.startswith("\ufeff")  # Windows editors' mark: not part of the first image name
     text = text.removeprefix("\ufeff")

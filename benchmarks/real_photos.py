@@ -37,7 +37,7 @@ DATA = ROOT.parent / "shared" / "data"
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.image import load_image  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine.refiner import median_depth  # noqa: E402
+from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
 
 
 def load_dataset(name: str):

@@ -61,7 +61,7 @@ from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine.refiner import median_depth  # noqa: E402
+from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
 
 LEVELS = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0), (30.0, 10.0))
 WORSE_CM, WORSE_DEG = 1.0, 0.5
@@ -192,7 +192,7 @@ def run_case(case, config: hp.RefineConfig, draws: int = 1) -> list[str]:
                     v = medians[src][0 if key in LENGTHS else 1] if v == "median" else v
                     per_query[key] = v / scale[k] if key in LENGTHS else v
             if name in INLIER_ROWS:  # as the pipeline sets them for a record of an ACE file
-                per_query = inlier_trust(counts[INLIER_ROWS[name]][j])
+                per_query = inlier_trust(counts[INLIER_ROWS[name]][j]).as_dict()
             r = refiner.refine(img, cam, prior, name=str(k), **per_query)
             for lst, p in ((e0, prior), (e1, r.pose), (es, r.search_pose)):
                 t, a = p.errors_to(gt)

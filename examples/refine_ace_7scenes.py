@@ -19,10 +19,10 @@ from pathlib import Path
 
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.intrinsics import from_pgt
-from hgsloc_plugin.cli import prior_error_overrides
 from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
 from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine import RefineConfig
+from hgsloc_plugin.units import prior_error_overrides
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
 

@@ -14,6 +14,7 @@ from .camera import Camera  # noqa: E402
 from .kernels import RasterConfig  # noqa: E402
 from .plugin import HGSLocPlugin  # noqa: E402
 from .pose import Pose  # noqa: E402
+from .prior import QueryPrior  # noqa: E402
 from .refine import RefineConfig, RefineResult  # noqa: E402
 from .render import Renderer, render, render_cost, render_full  # noqa: E402
 from .scene import GaussianScene  # noqa: E402
@@ -23,6 +24,7 @@ __all__ = [
     "GaussianScene",
     "HGSLocPlugin",
     "Pose",
+    "QueryPrior",
     "RasterConfig",
     "RefineConfig",
     "RefineResult",

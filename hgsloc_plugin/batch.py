@@ -11,35 +11,30 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
-from .refine import PER_QUERY, Refiner, RefineResult
+from .prior import QueryPrior
+from .refine import Refiner, RefineResult
 
 logger = logging.getLogger("hgsloc_plugin")
 
 
 @dataclass
 class Query:
-    """One query: its position in the batch, name, image (path or array), camera, coarse pose and, optionally,
-    its own trust region and prior error (``Refiner.refine``'s keywords of the same names, ``PER_QUERY``)."""
+    """One query: its position in the batch, name, image (path or array), camera, coarse pose and its own
+    settings (:class:`QueryPrior`: trust region, prior error)."""
 
     index: int
     name: str | None
     image: object
     camera: object
     coarse_pose: object
-    max_shift: float | None = None
-    max_rotation_deg: float | None = None
-    max_shift_depth: float | None = None
-    prior_error: float | None = None
-    prior_error_deg: float | None = None
-    prior_error_depth: float | None = None
+    prior: QueryPrior = QueryPrior()
 
     def refine_with(self, refiner: Refiner) -> RefineResult:
         """``refiner.try_refine`` on this query."""
-        return refiner.try_refine(self.image, self.camera, self.coarse_pose, name=self.name,
-                                  **{k: getattr(self, k) for k in PER_QUERY})
+        return refiner.try_refine(self.image, self.camera, self.coarse_pose, name=self.name, prior=self.prior)
 
 
-_QUERY_KEYS = {"image", "camera", "coarse_pose", "name", *PER_QUERY}
+_QUERY_KEYS = {"image", "camera", "coarse_pose", "name", "prior", *QueryPrior.names()}
 
 
 def as_queries(items: Iterable) -> list[Query]:
@@ -53,8 +48,9 @@ def as_queries(items: Iterable) -> list[Query]:
             unknown = sorted(set(it) - _QUERY_KEYS)
             if unknown:  # a misspelt region or error would otherwise be dropped without a word
                 raise ValueError(f"query {k}: unknown keys {unknown}; a query dict takes {sorted(_QUERY_KEYS)}")
-            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"],
-                             **{key: it.get(key) for key in PER_QUERY}))
+            prior = it.get("prior") or QueryPrior.from_mapping(
+                {key: it[key] for key in QueryPrior.names() if key in it}, f"query {k}")
+            out.append(Query(k, it.get("name"), it["image"], it["camera"], it["coarse_pose"], prior))
         else:
             image, camera, coarse, *rest = it
             out.append(Query(k, rest[0] if rest else None, image, camera, coarse))

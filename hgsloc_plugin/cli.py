@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .refine.config import METRICS
+from .units import count_arg, parse_angle, parse_length, positive_count_arg, prior_error_overrides
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -79,62 +80,6 @@ def summary_line(t: dict, out) -> str:
             + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
             + (f"{conf:.2f}" if conf is not None else "-") + sig
             + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
-
-
-def count_arg(text: str, minimum: int = 0) -> int:
-    """argparse type of a count (``--limit``, ``--workers``): an integer >= ``minimum``."""
-    try:
-        n = int(text)
-    except ValueError:
-        n = None
-    if n is None or n < minimum:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
-    return n
-
-
-def positive_count_arg(text: str) -> int:
-    """argparse type of a count that must be >= 1 (``--sample``, ``--queries``)."""
-    return count_arg(text, 1)
-
-
-_LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
-_ANGLE_UNITS = {"": 1.0, "deg": 1.0, "rad": 57.29577951308232}
-
-
-def _with_unit(text: str, units: dict[str, float], flag: str) -> float:
-    import re
-
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-z]*)\s*", text)
-    if not m or m.group(2) not in units:
-        raise ValueError(f"{flag}: expected a positive number with an optional unit "
-                         f"({', '.join(u for u in units if u)}), got {text!r}")
-    v = float(m.group(1)) * units[m.group(2)]
-    if not v > 0:
-        raise ValueError(f"{flag}: must be > 0, got {text!r}")
-    return v
-
-
-def parse_length(text: str, flag: str = "--max-shift") -> float:
-    """'0.25m', '25cm', '0.25' -> 0.25 (scene units, taken as metres)."""
-    return _with_unit(text, _LENGTH_UNITS, flag)
-
-
-def parse_angle(text: str, flag: str = "--max-rotation") -> float:
-    """'5deg', '5', '0.1rad' -> degrees."""
-    return _with_unit(text, _ANGLE_UNITS, flag)
-
-
-def prior_error_overrides(error: str | None, rotation_error: str | None,
-                          flags: tuple[str, str] = ("--prior-error", "--prior-rotation-error")) -> dict:
-    """``RefineConfig`` fields from the priors' typical-error flags ('2cm', '1deg'; None: not given), for every
-    command line that takes them (``hgsloc refine``, the hloc step, the examples); a bad value raises ValueError
-    naming its flag (``flags``)."""
-    out = {}
-    if error is not None:
-        out["prior_error"] = parse_length(error, flags[0])
-    if rotation_error is not None:
-        out["prior_error_deg"] = parse_angle(rotation_error, flags[1])
-    return out
 
 
 def _check(args, sample: int, figures=None):

@@ -2,12 +2,48 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .kernels.layout import Stat
 
-FUSED_METRICS = ("sad", "ssd", "psnr", "ncc", "affine")
-WINDOW_METRICS = ("cs", "ssim")
+
+@dataclass(frozen=True)
+class Metric:
+    """A registered image cost (lower is better).
+
+    Attributes:
+        name: its name in ``RefineConfig.metric``, ``render_cost`` and the CLI.
+        windowed: computed from windowed statistics of the rendered image (``kernels/window.py``,
+            :func:`cost_from_window`); else from the blend's fused pixel statistics (:func:`cost_from_stats`).
+        structural: its level is comparable across images, so the acceptance rule's alignment test applies.
+        search: usable as the search's heuristic (``RefineConfig.metric``).
+        polish: the polish's analytic pose derivatives are this cost's.
+        summary: one line for help texts.
+    """
+
+    name: str
+    windowed: bool
+    structural: bool
+    search: bool
+    polish: bool
+    summary: str
+
+
+#: every cost, by name; a new cost is added here and in the kernel that gathers its statistics
+METRICS: dict[str, Metric] = {m.name: m for m in (
+    Metric("cs", True, True, True, True, "1 - mean SSIM contrast-structure over 11x11 Gaussian windows"),
+    Metric("ssim", True, True, True, False, "1 - mean SSIM over 11x11 Gaussian windows"),
+    Metric("sad", False, False, True, False, "sum of absolute differences over pixels and RGB (0-1 scale)"),
+    Metric("ssd", False, False, False, False, "sum of squared differences over pixels and RGB (0-1 scale)"),
+    Metric("psnr", False, False, True, False, "100 - PSNR of the valid pixels"),
+    Metric("ncc", False, True, True, False, "1 - mean per-channel zero-mean normalised cross-correlation"),
+    Metric("affine", False, False, True, False, "residual after a per-channel gain/offset fit, SAD-scaled"),
+)}
+FUSED_METRICS = tuple(k for k, m in METRICS.items() if not m.windowed)
+WINDOW_METRICS = tuple(k for k, m in METRICS.items() if m.windowed)
+SEARCH_METRICS = tuple(k for k, m in METRICS.items() if m.search)
 
 
 def cost_from_window(sums: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ Run it after ``localize_sfm.main(...)`` and before ``evaluate(...)`` in a pipeli
     results_refined = hloc_step.main(scene_ply, query_list, results, images, results.with_name("results_refined.txt"))
 
 or from the shell: ``python -m hgsloc_plugin.hloc_step --scene S.ply --queries Q.txt --results R.txt
---image_dir DIR --output OUT.txt`` (``python -m hgsloc_plugin.adapters.hloc`` is the same).
+--image_dir DIR --output OUT.txt``.
 
 hloc's results file carries no per-pose confidence; when the localizer's typical (median) error is known, give it
 (``RefineConfig(prior_error=..., prior_error_deg=...)``, or ``--prior_error 2cm --prior_rotation_error 1deg``):
@@ -44,8 +44,8 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2."""
-    from .cli import count_arg, prior_error_overrides
     from .refine import RefineConfig
+    from .units import count_arg, prior_error_overrides
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, required=True)

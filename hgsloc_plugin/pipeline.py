@@ -14,14 +14,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .adapters.confidence import inlier_trust, record_inliers
+from .adapters.dialects import read_poses
 from .adapters.names import resolve_image
-from .adapters.posefile import PoseFile, read_poses, write_poses
+from .adapters.posefile import PoseFile, write_poses
 from .batch import Query, run_batch
 from .camera import Camera
 from .fileio import write_json
 from .image import load_image
 from .plugin import HGSLocPlugin
 from .pose import Pose
+from .prior import QueryPrior
 from .refine import RefineConfig, RefineResult
 from .scene import GaussianScene
 
@@ -109,9 +111,9 @@ def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose
 
 
 def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera],
-             region_of: Callable[[str], dict]) -> list[Query]:
-    """Queries to refine: name, image path, intrinsics, prior and its own trust region (``region_of``: the
-    ``Query`` fields to set; empty = the refiner's). Unusable ones are recorded as failed at once."""
+             region_of: Callable[[str], QueryPrior]) -> list[Query]:
+    """Queries to refine: name, image path, intrinsics, prior and its own settings (``region_of``). Unusable ones
+    are recorded as failed at once."""
     from PIL import Image
 
     out = []
@@ -124,23 +126,20 @@ def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[st
             img_path = resolve_image(name, images)
             with Image.open(img_path) as im:
                 w, h = im.size
-            out.append(Query(len(out), name, str(img_path), intrinsics(name, w, h), coarse, **region_of(name)))
+            out.append(Query(len(out), name, str(img_path), intrinsics(name, w, h), coarse, region_of(name)))
         except Exception as exc:  # one bad query never stops the run
             logger.warning("%s: %s", name, exc)
             run.record(name, error=f"{type(exc).__name__}: {exc}")
     return out
 
 
-def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], dict]:
-    """name -> the ``Query`` fields from the record's inlier count (trust region and expected error,
-    ``adapters/confidence.inlier_trust``; {} without one); a value set in the refiner's config stays (it is not
-    passed). Shift and error are depth-relative: the refiner scales them by the median depth it computes for
-    the query anyway (a depth-relative key ``X_depth`` gives way to the config's ``X``, as in ``Refiner._plan``)."""
+def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], QueryPrior]:
+    """name -> the query's settings from its record's inlier count (``adapters/confidence.inlier_trust``; none
+    without one), less those the refiner's config fixes (``QueryPrior.deferring_to``)."""
 
-    def region_of(name: str) -> dict:
+    def region_of(name: str) -> QueryPrior:
         inliers = record_inliers(pf.dialect, pf.record(name).tokens)
-        trust = {} if inliers is None else inlier_trust(inliers)
-        return {k: v for k, v in trust.items() if getattr(cfg, k.removesuffix("_depth")) is None}
+        return QueryPrior() if inliers is None else inlier_trust(inliers).deferring_to(cfg)
 
     return region_of
 
@@ -184,7 +183,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
     run = _Run(pf, output, report, refined)
     names = list(pf)[: limit if limit is not None else None]
     queries = _queries(run, [n for n in names if n not in done], images, intrinsics,
-                       _region_of(pf, refiner.config) if inlier_region else lambda _: {})
+                       _region_of(pf, refiner.config) if inlier_region else lambda _: QueryPrior())
     count = 0
 
     def on_result(q: Query, res: RefineResult) -> None:

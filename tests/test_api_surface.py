@@ -2,7 +2,7 @@
 
 import hgsloc_plugin
 
-EXPECTED = ["Camera", "GaussianScene", "HGSLocPlugin", "Pose", "RasterConfig", "RefineConfig", "RefineResult",
+EXPECTED = ["Camera", "GaussianScene", "HGSLocPlugin", "Pose", "QueryPrior", "RasterConfig", "RefineConfig", "RefineResult",
             "Renderer", "current_arch", "init", "render", "render_cost", "render_full"]
 
 

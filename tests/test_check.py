@@ -17,7 +17,7 @@ from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.check import check_poses
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.pose import so3_exp
-from hgsloc_plugin.refine.refiner import median_depth
+from hgsloc_plugin.refine.plan import median_depth
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FLIP = np.diag([1.0, -1.0, -1.0])

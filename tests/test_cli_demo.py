@@ -140,7 +140,7 @@ def test_cli_render(tiny_case, tmp_path):
 
 
 def test_hloc_step(tiny_case, tmp_path):
-    from hgsloc_plugin.adapters import hloc as step
+    from hgsloc_plugin import hloc_step as step
 
     d = tiny_case
     q = tmp_path / "queries_with_intrinsics.txt"

@@ -1,4 +1,5 @@
-"""The package reads top to bottom: no module-level import goes up a layer; scenes are not kept alive."""
+"""The package reads top to bottom: no import goes up a layer or closes a circle, no module is a hub, scenes
+are not kept alive."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ import numpy as np
 import hgsloc_plugin as hp
 
 ROOT = Path(__file__).resolve().parents[1]
-# lower number = lower layer; a module may import only its own layer or lower ones at module level
+# lower number = lower layer; a module may import only its own layer or lower ones (function-level imports too)
 LAYERS = {
     "kernels": 0,
-    "pose": 1, "camera": 1, "fileio": 1, "scene": 1, "image": 1, "backend": 1, "kernel_load": 1,
+    "pose": 1, "camera": 1, "fileio": 1, "scene": 1, "image": 1, "backend": 1, "kernel_load": 1, "prior": 1,
+    "units": 1,
     "costs": 2, "render": 2,
     "adapters": 3, "working_set": 3, "lod": 3,
     "refine": 4, "evaluate": 4, "noise": 4, "viz": 4,
@@ -26,6 +28,11 @@ LAYERS = {
     "pipeline": 8,
     "hloc_step": 9, "demo": 9, "cli": 9, "__init__": 9,
 }
+#: the command and batch layer, which nothing in adapters/, kernels/ or refine/ may import
+TOP = {"cli", "hloc_step", "pipeline", "plugin", "batch", "distributed", "demo", "check"}
+#: what adapters/ may import besides itself: the core types
+ADAPTER_DEPS = {"pose", "camera", "fileio", "prior"}
+MAX_LINES = 400
 
 
 def _modules():
@@ -35,49 +42,103 @@ def _modules():
             yield f, ((pkg,) if pkg else ()) + rel
 
 
+MODULES = dict((parts, f) for f, parts in _modules())
+
+
 def _layer(parts: tuple[str, ...]) -> int:
     return LAYERS[parts[0]]
 
 
-def _resolve(mod_parts: tuple[str, ...], node: ast.ImportFrom) -> tuple[str, ...] | None:
-    if node.level == 0:
-        if not (node.module or "").startswith("hgsloc_plugin"):
-            return None
-        parts = tuple(node.module.split("."))[1:]
-    else:
-        parts = mod_parts[:-node.level] + (tuple(node.module.split(".")) if node.module else ())
-    return parts or None
+def _as_module(parts: tuple[str, ...]) -> tuple[str, ...]:
+    """An import target as a module of the package: a package's ``__init__`` for a package."""
+    return parts if parts in MODULES else parts + ("__init__",)
 
 
-def test_no_module_level_import_goes_up_a_layer():
-    bad = []
-    for f, parts in _modules():
-        if parts[-1] == "__init__" and len(parts) == 1:
-            continue  # the package's public surface imports everything
-        own = _layer(parts)
-        for node in ast.parse(f.read_text()).body:  # module level only
-            if isinstance(node, ast.ImportFrom):
-                target = _resolve(parts, node)
-                if target is None:
+def _imports(f: Path, parts: tuple[str, ...]):
+    """Every import of the package by module ``parts`` (function-level and TYPE_CHECKING ones included): the
+    target modules, a ``from pkg import submodule`` resolved to the submodule."""
+    package = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
+    for node in ast.walk(ast.parse(f.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                if not (node.module or "").startswith("hgsloc_plugin"):
                     continue
-                if target[0] == "kernels" or parts[0] == "kernels":
-                    ok = parts[0] != "kernels" or target[0] == "kernels"
-                else:
-                    ok = _layer(target) <= own
-                if not ok:
-                    bad.append(f"{f.relative_to(ROOT)} imports {'.'.join(target)}")
+                base = tuple(node.module.split("."))[1:]
+            else:
+                up = package[:len(package) - (node.level - 1)] if node.level > 1 else package
+                base = up + (tuple(node.module.split(".")) if node.module else ())
+            subs = [base + (a.name,) for a in node.names if base + (a.name,) in MODULES
+                    or base + (a.name, "__init__") in MODULES]
+            for t in subs or [base]:
+                if t:
+                    yield _as_module(t)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("hgsloc_plugin."):
+                    yield _as_module(tuple(a.name.split("."))[1:])
+
+
+GRAPH = {parts: sorted(set(_imports(f, parts)) - {parts}) for parts, f in MODULES.items()}
+
+
+def test_no_import_goes_up_a_layer():
+    bad = []
+    for parts, targets in GRAPH.items():
+        if parts == ("__init__",):
+            continue  # the package's public surface imports everything
+        for target in targets:
+            if target[0] == "kernels" or parts[0] == "kernels":
+                ok = parts[0] != "kernels" or target[0] == "kernels"
+            else:
+                ok = _layer(target) <= _layer(parts)
+            if not ok:
+                bad.append(f"{'/'.join(parts)} imports {'.'.join(target)}")
+    assert not bad, bad
+
+
+def test_lower_packages_never_import_the_command_layer():
+    lower = ("adapters", "kernels", "refine")
+    bad = [f"{'/'.join(p)} imports {'.'.join(t)}" for p, ts in GRAPH.items() if p[0] in lower for t in ts if t[0] in TOP]
     assert not bad, bad
 
 
 def test_adapters_are_pure_io():
-    allowed = {"pose", "camera", "fileio", "adapters"}
-    for f, parts in _modules():
-        if parts[0] != "adapters":
-            continue
-        for node in ast.parse(f.read_text()).body:
-            if isinstance(node, ast.ImportFrom):
-                target = _resolve(parts, node)
-                assert target is None or target[0] in allowed, f"{f.name} imports {target}"
+    bad = [f"{'/'.join(p)} imports {'.'.join(t)}" for p, ts in GRAPH.items() if p[0] == "adapters"
+           for t in ts if t[0] not in ADAPTER_DEPS | {"adapters"}]
+    assert not bad, bad
+
+
+def test_no_import_circle():
+    state: dict = {}
+    cycles = []
+
+    def visit(node, path):
+        state[node] = 1
+        for t in GRAPH.get(node, []):
+            if state.get(t) == 1:
+                cycles.append(path[path.index(t):] + [t] if t in path else [node, t])
+            elif t not in state:
+                visit(t, path + [t])
+        state[node] = 2
+
+    for m in GRAPH:
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, [" -> ".join("/".join(p) for p in c) for c in cycles]
+
+
+def test_the_layer_test_sees_function_level_imports(tmp_path):
+    """An import inside a function or under TYPE_CHECKING counts (the old module-level test missed them)."""
+    f = tmp_path / "m.py"
+    f.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ..refine import plan\n"
+                 "def f():\n    from hgsloc_plugin.cli import main\n")
+    assert set(_imports(f, ("adapters", "m"))) == {("cli",), ("refine", "plan")}
+    assert ("render", "__init__") in GRAPH[("refine", "routes")]
+
+
+def test_no_module_over_400_lines():
+    long = {"/".join(p): n for p, f in MODULES.items() if (n := len(f.read_text().splitlines())) > MAX_LINES}
+    assert not long, long
 
 
 def test_scene_is_released_when_the_caller_drops_it():

@@ -23,8 +23,8 @@ import hgsloc_plugin as hp
 from hgsloc_plugin.costs import cost_from_window
 from hgsloc_plugin.demo.queries import degrade, query_poses
 from hgsloc_plugin.demo.scene import make_room_scene
+from hgsloc_plugin.refine.plan import median_depth
 from hgsloc_plugin.refine.polish import polish, step_pixels
-from hgsloc_plugin.refine.refiner import median_depth
 from hgsloc_plugin.render import get_renderer
 
 from .conftest import random_scene, shared_path

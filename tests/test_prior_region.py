@@ -25,7 +25,7 @@ from hgsloc_plugin.adapters.confidence import (
     inlier_trust,
 )
 from hgsloc_plugin.pipeline import refine_pose_file
-from hgsloc_plugin.refine.refiner import median_depth
+from hgsloc_plugin.refine.plan import median_depth
 from hgsloc_plugin.viz import save_png
 
 from .conftest import room_query
@@ -68,11 +68,11 @@ def test_inlier_region_is_depth_relative_and_refuses_unusable_counts():
     assert rot == pytest.approx(REGION_MARGIN * Q99_DEG[6])
     assert inlier_region(500.0)[0] > 10 * shift
     for bad in (math.nan, -1.0, math.inf):
-        assert inlier_region(bad) is None and inlier_prior_error(bad) is None and inlier_trust(bad) == {}
+        assert inlier_region(bad) is None and inlier_prior_error(bad) is None and inlier_trust(bad) == hp.QueryPrior()
     err, err_deg = inlier_prior_error(3700.0)
     assert 2.0 * err == pytest.approx(MEDIAN_CM[6] / 100) and err_deg == MEDIAN_DEG[6]
-    assert inlier_trust(3700.0) == {"max_shift_depth": shift, "max_rotation_deg": rot, "prior_error_depth": err,
-                                    "prior_error_deg": err_deg}
+    assert inlier_trust(3700.0) == hp.QueryPrior(max_shift_depth=shift, max_rotation_deg=rot, prior_error_depth=err,
+                                                 prior_error_deg=err_deg)
 
 
 @pytest.fixture(scope="module")
@@ -229,8 +229,7 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
     covariance (singular Hessian) leaves the prior of known error, "prior more precise"."""
     from types import SimpleNamespace
 
-    from hgsloc_plugin.refine.refiner import PRIOR_MORE_PRECISE, Refiner, RefineResult
-    from hgsloc_plugin.refine.trust import PRIOR_SPREAD, fuse_with_prior
+    from hgsloc_plugin.refine.trust import PRIOR_SPREAD, _fuse, fuse_with_prior
 
     pose = hp.Pose.identity()
     prior = pose.perturbed_in_camera([0.0, 0.02, 0.0], [0.0, 0.0, 0.05])
@@ -242,7 +241,6 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
     assert _close(fused, pose.perturbed_in_camera(expect[:3], expect[3:]), 1e-12)
     np.testing.assert_allclose(np.diag(post), a * s2 / (a + s2), rtol=1e-9)
     np.testing.assert_allclose(post - np.diag(np.diag(post)), 0.0, atol=1e-15)
-    result = RefineResult(pose=prior, initial_pose=prior)
-    out = Refiner._fuse(SimpleNamespace(prior_t=err_t, prior_r=err_deg), None, pose,
-                        (np.full((6, 6), math.inf), math.inf, math.inf), prior, result)
-    assert result.rejected == PRIOR_MORE_PRECISE and not result.fused and out[2] is None
+    plan = SimpleNamespace(coarse_pose=prior, prior_error=err_t, prior_error_deg=err_deg)
+    out = _fuse(pose, (np.full((6, 6), math.inf), math.inf, math.inf), plan, None, 1.0, "q")
+    assert out[2] is None  # no fusion: the judge keeps the prior as "prior more precise"

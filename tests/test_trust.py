@@ -14,9 +14,9 @@ import pytest
 
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters.confidence import inlier_prior_error, inlier_trust
-from hgsloc_plugin.cli import parse_angle, parse_length
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
+from hgsloc_plugin.units import parse_angle, parse_length
 
 from .conftest import room_query
 from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
@@ -96,7 +96,7 @@ def _snow():
     import json as _json
 
     from hgsloc_plugin.image import load_image
-    from hgsloc_plugin.refine.refiner import median_depth
+    from hgsloc_plugin.refine.plan import median_depth
 
     cj = _json.loads((SNOW / "camera.json").read_text())
     cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
@@ -167,10 +167,10 @@ def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
     assert t1 < 0.7 * t0 and a1 < 0.7 * a0, (t0, a0, t1, a1)
     assert confident.sigma_t < free.sigma_t and confident.sigma_r_deg < free.sigma_r_deg
     # with the count's trust region too (what `hgsloc refine` sets for an ACE file) the prior is not made worse
-    region = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, **inlier_trust(4500))
+    region = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, prior=inlier_trust(4500))
     t2, a2 = region.pose.errors_to(gt0)
     assert t2 <= t0 + 1e-9 and a2 <= a0 + 1e-9, (region.rejected, t2, a2)
-    doubtful = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, **inlier_trust(500))
+    doubtful = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, prior=inlier_trust(500))
     assert doubtful.accepted and doubtful.fused and doubtful.search_pose == free.pose
     assert doubtful.pose.errors_to(free.pose)[0] < 0.2 * free.pose.errors_to(priors[0])[0]
 

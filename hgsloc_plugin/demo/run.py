@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters.dialects import read_poses
 from ..adapters.intrinsics import from_focal
-from ..adapters.posefile import format_pose_tokens, read_poses
+from ..adapters.posefile import format_pose_tokens
 from ..camera import Camera
 from ..evaluate import evaluate
 from ..fileio import atomic_write_bytes, write_json

@@ -6,7 +6,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-METRICS = ("cs", "ssim", "sad", "psnr", "ncc", "affine")
+from ..costs import METRICS as _COSTS
+from ..costs import SEARCH_METRICS as METRICS
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,7 +159,7 @@ class RefineConfig:
             raise ValueError("expansion budgets and patience must be >= 0")
         if self.polish_iterations < 1 or self.polish_max_side < 8:
             raise ValueError("polish_iterations must be >= 1 and polish_max_side >= 8")
-        if not self.search and not (self.polish and self.metric == "cs" and self.neighbourhood == "lattice"):
+        if not self.search and not self.polishes:
             raise ValueError("search=False (gradient only) needs polish=True, metric='cs' and the lattice "
                              "neighbourhood")
         if self.score_max_side < 8:
@@ -183,7 +184,7 @@ class RefineConfig:
     @property
     def polishes(self) -> bool:
         """Whether the polish runs (it is on, the metric is cs and the neighbourhood the lattice)."""
-        return self.polish and self.metric == "cs" and self.neighbourhood == "lattice"
+        return self.polish and _COSTS[self.metric].polish and self.neighbourhood == "lattice"
 
     @property
     def step_pixels(self) -> tuple[float, ...]:

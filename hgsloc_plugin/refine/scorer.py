@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera
-from ..costs import WINDOW_METRICS, cost_from_stats, cost_from_window
+from ..costs import METRICS, cost_from_stats, cost_from_window
 from ..image import resize_image
 from ..pose import Pose
 from ..render import RendererLike
@@ -35,7 +35,7 @@ class Scorer:
         self.camera = camera
         self._cache = {}
         self.query = resize_image(image_full, camera.width, camera.height)
-        if self.metric in WINDOW_METRICS:
+        if METRICS[self.metric].windowed:
             self._target = self.renderer.upload_window_query(self.query)
         else:
             self._target = self.renderer.upload_image(self.query)
@@ -56,7 +56,7 @@ class Scorer:
             return np.zeros(0)
         self.renders += len(poses)
         cam = self.camera
-        if self.metric in WINDOW_METRICS:
+        if METRICS[self.metric].windowed:
             sums = self.renderer.window_cost(cam, poses, self._target, self.background, self.mask_alpha,
                                              luminance=self.metric == "ssim")
             return cost_from_window(sums)

@@ -20,6 +20,21 @@ import numpy as np
 from ..pose import Pose, rotmat_to_qvec, so3_exp
 
 
+@dataclass
+class LevelStats:
+    """One search level: its steps (degrees, scene units), scoring size, expansions, renders, best cost and why
+    it stopped."""
+
+    step_rot_deg: float
+    step_t: float
+    width: int
+    height: int
+    expansions: int
+    renders: int
+    best_cost: float
+    stopped: str
+
+
 class LatticeSpace:
     """Camera-frame rotation/translation lattice around ``base`` (steps in radians and scene units).
 

@@ -1,64 +1,44 @@
-"""Whether a search result is trusted: the acceptance rule and the confidence of a refined pose.
+"""The acceptance rule, the pose's uncertainty and the fusion with a prior of known error.
 
-A lower cost is not a better pose when the map is imperfect: on real photographs the cost minimum lies a
-fraction of a pixel from the true pose, in a direction set by the map's errors. The rule therefore measures
-every quantity against the cost's own scale at the solution, the **one-pixel rise** ``kappa``: the median
-increase of the cost over the 12 lattice moves (+-1 px of image motion per rotation and translation axis,
-rotations about the median-depth pivot) around the search's best pose, scored at the final resolution.
+A lower cost is not a better pose on an imperfect map, so the rule measures everything against the cost's own
+scale at the candidate: the **one-pixel rise** ``kappa``, the median rise of the cost over the 12 lattice moves
+of one pixel of image motion around it. The candidate is returned only when it passes every test, in order:
+"no improvement" (its cost is not below the coarse pose's), "insignificant" (the drop is under
+``MIN_SIGNIFICANCE`` kappa), "weak alignment" (structural costs: kappa under ``MIN_ALIGNMENT`` of the cost),
+"flat valley" (some move rises less than ``MIN_SHARPNESS`` kappa), "trust-region edge" (beyond ``EDGE_FRACTION``
+of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps).
 
-The search's pose is returned only when all hold (else the coarse pose, with the reason):
-- ``"no improvement"``: its cost is not below the coarse pose's;
-- ``"insignificant"``: the cost drop is below ``MIN_SIGNIFICANCE`` one-pixel rises (the coarse pose is
-  already as good as the map can tell; measured on the real snow photos, starts at the true pose drop
-  0.16-0.75 rises, starts 1 % of depth / 0.5 deg off drop 1.8-24);
-- ``"weak alignment"``: ``kappa`` is below ``MIN_ALIGNMENT`` of the best cost itself (structural costs only:
-  cs, ssim, ncc, whose level is comparable across images). Where the rendering lines up with the photo, one
-  pixel of motion raises the cost by a clear fraction of it; where it lines up with nothing (a false basin,
-  a prior beyond reach) the cost is flat at a high level. Measured (``benchmarks/trust.py``): accepted good
-  results 1.5-4 % on the real snow photos and 14-80 % on the room; the two accepted results that ended
-  worse than a 30 cm / 10 deg prior 0.2 % and 0.14 %;
-- ``"flat valley"``: some axis move raises the cost by less than ``MIN_SHARPNESS`` of ``kappa`` (or lowers
-  it): the pose is not pinned down along that axis (repetitive texture, textureless wall);
-- ``"trust-region edge"``: it lies beyond ``EDGE_FRACTION`` of the trust region in shift or rotation (the
-  search was stopped by the region, not by a minimum);
-- ``"level inconsistency"``: the fine levels moved it further from the coarse levels' answer than
-  ``MAX_LEVEL_SHIFT`` coarsest steps (the pyramid disagreed about the basin; on the lego and snow sets
-  correct refinements move up to 4 steps after the coarse levels).
-
-The **uncertainty** of a polished pose (:func:`pose_uncertainty`) is read from the Gauss-Newton Hessian ``H``
-of the cs cost at the solution (``Renderer.pose_gradient``) and the cost's level ``c`` there: the covariance of
-the increment ``xi = (w, v)`` is taken as ``UNCERTAINTY_SCALE^2 * c * H^-1`` (the least-squares form
-``sigma^2 (J^T J)^-1`` with the residual level standing in for the noise; the factor, for residuals correlated
-over the window and over the map's errors, is calibrated on real photographs: snow and lego, 33 refined
-poses from 1-10 cm-equivalent priors: median |error| / sigma 0.85 for the camera centre and 0.58 for the
-rotation, 1 of 33 centre errors beyond 2 sigma). On clean synthetic renders (the demo room) it overestimates
-the error about 20x: pixel noise averages out, a real map's errors do not. It does not see a map's bias
-(snow query 0: 2.9 cm-equivalent off, sigma 1.5).
-
-When the prior's expected error is known (declared, or from a localizer's inlier count), the returned pose is
-the **fusion** of the two (:func:`fuse_with_prior`): the posterior mean of the refined pose, with the covariance
-above, and the prior, isotropic with a per-axis standard deviation of ``PRIOR_SPREAD`` times its median error.
-Along the directions the image pins down the refined pose wins; along the map's weak directions, where its
-minimum may be biased (snow query 0 drifts along the coupled rotation + sideways shift the cost cannot
-separate), a precise prior holds. Measured (``benchmarks/trust.py``'s priors, scratch comparison of spreads
-1.0 / 1.5 / 2.0 x the median / 1.54, the median of a 3D Gaussian's norm): at 2.0 no query of the snow, lego or
-room rows with a declared or inlier-count error ended worse, and recall at 1 cm / 1 deg was at least the binary
-rule's on every real-photo row; a narrower prior (1.0) gained more from 1 cm priors (snow 83 -> 100 %, lego
-50 -> 83 %) but lost recall from Marepo-shaped priors with Marepo's median declared (snow 83 -> 44 %): a median
-understates a heavy-tailed localizer's spread.
+The uncertainty of a polished pose is ``UNCERTAINTY_SCALE^2 * cost * JtJ^-1`` in ``xi = (w, v)``
+(``Pose.perturbed_in_camera``); with a prior of known median error the returned pose is the posterior mean of the
+two (:func:`fuse_with_prior`), the prior isotropic with ``PRIOR_SPREAD`` times its median error per axis.
+Where the thresholds and factors come from: ``benchmarks/trust.md``.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..pose import Pose
+from ..pose import Pose, rotation_angle_deg
+
+if TYPE_CHECKING:
+    from ..camera import Camera
+    from .plan import Plan
+    from .routes import Candidate
+    from .scorer import Scorer
+
+#: ``Verdict.rejected`` when the fusion with a prior of known error is no better than the prior (its cost is not
+#: lower) or the refined pose's uncertainty is unbounded
+PRIOR_MORE_PRECISE = "prior more precise"
+
+logger = logging.getLogger("hgsloc_plugin")
 
 MIN_SIGNIFICANCE = 1.0
-#: per-axis standard deviation of a prior, in units of its expected (median) error; 2 / 1.54 (see above)
+#: per-axis standard deviation of a prior, in units of its expected (median) error
 PRIOR_SPREAD = 1.3
 MIN_SHARPNESS = 0.02
 MIN_ALIGNMENT = 0.005
@@ -76,7 +56,7 @@ def sigmas(cov: np.ndarray) -> tuple[float, float]:
 
 def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float | None,
                     prior_error_deg: float | None) -> tuple[Pose, np.ndarray]:
-    """Posterior mean of a refined ``pose`` and the coarse ``prior`` (see the module docstring).
+    """Posterior mean of a refined ``pose`` and the coarse ``prior``.
 
     Args:
         pose: the refined pose; cov: [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at it.
@@ -101,7 +81,7 @@ def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float
 
 
 def pose_uncertainty(jtj: np.ndarray, cost: float) -> tuple[np.ndarray, float, float]:
-    """Covariance and standard deviations of a polished pose (see the module docstring).
+    """Covariance and standard deviations of a polished pose.
 
     Args:
         jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
@@ -202,3 +182,92 @@ def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: flo
         conf = min(1.0, significance / 4.0) * min(1.0, sharpness / 0.1) * (1.0 - min(travel, 1.0) ** 4)
     return Assessment(float(significance), float(sharpness), float(travel), float(level_shift), kappa,
                       float(alignment), float(conf), reason)
+
+
+@dataclass
+class Verdict:
+    """What the rule decided about a candidate: the returned pose and its cost (the coarse pose and its cost when
+    refused), why it was refused (None: accepted), the rule's measurements, the confidence (nan when nothing was
+    measured), whether the pose is a fusion with the prior, and its covariance [6, 6] and sigmas (scene units,
+    degrees) when known."""
+
+    pose: Pose
+    cost: float
+    rejected: str | None
+    assessment: Assessment | None = None
+    confidence: float = 0.0
+    fused: bool = False
+    covariance: np.ndarray | None = None
+    sigma_t: float = math.nan
+    sigma_r_deg: float = math.nan
+
+    @property
+    def accepted(self) -> bool:
+        return self.rejected is None
+
+    def ends_gradient_route(self) -> bool:
+        """Whether no search should follow this verdict on the gradient route's candidate: it was accepted, the
+        prior is more precise than the fusion near it, or the coarse pose sits in a sharp, aligned minimum."""
+        return (self.accepted or self.rejected == PRIOR_MORE_PRECISE
+                or (self.assessment is not None and settled(self.assessment)))
+
+
+def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str, lattice: bool, structural: bool,
+          pivot: bool, name: str | None = None) -> Verdict:
+    """Apply the acceptance rule (``rule`` "trust", on the lattice; else "cost": any lower cost) to ``cand``, then
+    fuse an accepted polished pose with a prior of known error. ``scorer`` scores at ``cam``, the judging size;
+    ``structural``: the cost's level is comparable across images (the alignment test applies)."""
+    coarse = plan.coarse_pose
+    rejected, assessment, confidence = None, None, 0.0
+    if rule == "trust" and lattice:
+        assessment = _assess(cand, plan, scorer, cam, pivot, structural)
+        rejected, confidence = assessment.rejected, assessment.confidence
+    elif not cand.cost < cand.cost_initial:
+        rejected = "no improvement"
+    pose, cost, uncertainty, fused = cand.pose, cand.cost, None, False
+    if rejected is None and cand.polish:  # the last stage's Hessian is at the candidate
+        last = cand.polish[-1]
+        uncertainty = pose_uncertainty(last.jtj, last.cost)
+        if plan.prior_error is not None or plan.prior_error_deg is not None:
+            pose, cost, uncertainty = _fuse(pose, uncertainty, plan, scorer, cand.cost_initial, name)
+            fused = uncertainty is not None
+            rejected = None if fused else PRIOR_MORE_PRECISE
+    if rejected is not None:
+        logger.debug("query %s: %s pose rejected (%s): %s", name, cand.route, rejected,
+                     assessment.to_dict() if assessment else {})
+        return Verdict(coarse, cand.cost_initial, rejected, assessment, 0.0)
+    out = Verdict(pose, cost, None, assessment, confidence if assessment is not None else math.nan, fused)
+    if uncertainty is not None:
+        out.covariance, out.sigma_t, out.sigma_r_deg = uncertainty
+    return out
+
+
+def _assess(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, pivot: bool, structural: bool) -> Assessment:
+    """Score the 12 one-pixel moves around the candidate at ``cam``'s size and apply :func:`assess`."""
+    from .search import LatticeSpace
+
+    best = cand.pose
+    f = 0.5 * (cam.fx + cam.fy)
+    space = LatticeSpace(best, 1.0 / f, plan.depth / f, plan.depth if pivot else 0.0)
+    rises = scorer([space.pose(k) for k in space.neighbours((0,) * 6)]) - cand.cost
+    step_r, step_t = plan.levels[0]
+    after = cand.after_coarse
+    level_shift = max(float(np.linalg.norm(after.centre() - best.centre())) / max(step_t, 1e-12),
+                      rotation_angle_deg(after.R, best.R) / max(step_r, 1e-12))
+    return assess(cand.cost_initial, cand.cost, rises, plan.travel(best), level_shift, check_alignment=structural)
+
+
+def _fuse(pose: Pose, uncertainty: tuple, plan: Plan, scorer: Scorer, cost_initial: float, name: str | None):
+    """The accepted ``pose`` fused with the prior of known error: (pose, its cost, (covariance, sigma_t,
+    sigma_r_deg)), or (pose, nan, None) when the fusion's cost is not below the coarse pose's or the refined
+    pose's uncertainty is unbounded (the prior is then the more precise)."""
+    cov = uncertainty[0]
+    if not np.all(np.isfinite(cov)):
+        return pose, math.nan, None
+    fused, post = fuse_with_prior(pose, cov, plan.coarse_pose, plan.prior_error, plan.prior_error_deg)
+    cost = float(scorer([fused])[0])
+    logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
+                 plan.prior_error, plan.prior_error_deg, cost, cost_initial)
+    if not cost < cost_initial:
+        return pose, math.nan, None
+    return fused, cost, (post, *sigmas(post))

@@ -1,0 +1,93 @@
+"""One query's plan: the scoring cameras, the search's step levels, its median depth, trust region and prior."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..pose import Pose, rotation_angle_deg
+from ..prior import QueryPrior
+from ..scene import GaussianScene
+from .config import RefineConfig
+
+
+def median_depth(scene: GaussianScene, camera: Camera, T_cam_world: Pose) -> float:
+    """Median camera z of the Gaussian centres that project into the image (scene extent if none do)."""
+    p = scene.means.astype(np.float64) @ T_cam_world.R.T + T_cam_world.tvec
+    z = p[:, 2]
+    front = z > 1e-6
+    u = camera.fx * p[front, 0] / z[front] + camera.cx
+    v = camera.fy * p[front, 1] / z[front] + camera.cy
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    zs = z[front][inside]
+    return float(np.median(zs)) if zs.size else max(scene.extent(), 1e-6)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What one query runs on.
+
+    Attributes:
+        coarse_pose: the prior (world-to-camera).
+        cam_final / cam_coarse / cam_polish: the fine levels', the pyramid levels' and the polish's cameras.
+        levels: (rotation step in degrees, translation step in scene units) per search level, coarse to fine.
+        depth: the coarse pose's median scene depth (scene units).
+        max_shift / max_rotation_deg: the trust region around ``coarse_pose``.
+        prior_error / prior_error_deg: the prior's expected error (None: unknown).
+    """
+
+    coarse_pose: Pose
+    cam_final: Camera
+    cam_coarse: Camera
+    cam_polish: Camera
+    levels: tuple[tuple[float, float], ...]
+    depth: float
+    max_shift: float
+    max_rotation_deg: float
+    prior_error: float | None = None
+    prior_error_deg: float | None = None
+
+    def allows(self, pose: Pose) -> bool:
+        """Whether ``pose`` lies in the trust region."""
+        if np.linalg.norm(pose.centre() - self.coarse_pose.centre()) > self.max_shift:
+            return False
+        return rotation_angle_deg(self.coarse_pose.R, pose.R) <= self.max_rotation_deg
+
+    def travel(self, pose: Pose) -> float:
+        """The larger of ``pose``'s centre shift / max_shift and rotation / max_rotation_deg from the prior."""
+        return max(float(np.linalg.norm(self.coarse_pose.centre() - pose.centre())) / self.max_shift,
+                   rotation_angle_deg(self.coarse_pose.R, pose.R) / self.max_rotation_deg)
+
+
+def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse_pose: Pose,
+              prior: QueryPrior) -> Plan:
+    """The plan of one query: ``prior``'s settings first, then ``config``'s, then the automatic trust region
+    (``trust_steps`` coarsest steps; half the depth and 10 degrees for the paper's raw-component steps)."""
+    cfg = config
+    cam_final = camera.with_max_side(cfg.score_max_side)
+    coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
+    cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
+    cam_polish = camera.with_max_side(cfg.polish_max_side)
+    depth = median_depth(scene, cam_final, coarse_pose)
+    if cfg.neighbourhood == "paper":
+        levels = [(cfg.paper_step_q, cfg.paper_step_t)]
+    elif cfg.levels:
+        levels = list(cfg.levels)
+    else:
+        f = 0.5 * (cam_final.fx + cam_final.fy)
+        levels = [(math.degrees(px / f), px * depth / f) for px in cfg.step_pixels]
+    if cfg.neighbourhood == "paper":  # raw-component steps: no image-motion scale
+        auto_shift, auto_rotation = 0.5 * depth, 10.0
+    else:
+        auto_shift, auto_rotation = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
+    return Plan(coarse_pose, cam_final, cam_coarse, cam_polish, tuple(levels), depth,
+                _first(prior.shift_bound(depth), cfg.max_shift, auto_shift),
+                _first(prior.max_rotation_deg, cfg.max_rotation_deg, auto_rotation),
+                _first(prior.centre_error(depth), cfg.prior_error), _first(prior.prior_error_deg, cfg.prior_error_deg))
+
+
+def _first(*values):
+    return next((v for v in values if v is not None), None)

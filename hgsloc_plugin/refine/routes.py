@@ -1,0 +1,148 @@
+"""The two routes from a coarse pose to a candidate: the gradient route (Levenberg-Marquardt alone, coarse to
+fine) and the search route (best-first lattice search over step levels, then the polish).
+
+Each route takes the query's :class:`QueryContext` and returns a :class:`Candidate`: the pose the acceptance
+rule (``trust.judge``) then judges, with the costs and the effort that led to it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera
+from ..image import resize_image
+from ..lod import coarse_lod
+from ..pose import Pose
+from ..render import RendererLike
+from ..working_set import WorkingSet
+from .config import RefineConfig
+from .plan import Plan
+from .polish import MIN_STEP_PX, STAGE_STEP_PX, PolishStats, polish
+from .scorer import Scorer
+from .search import LatticeSpace, LevelStats, PaperSpace, best_first
+
+
+@dataclass
+class QueryContext:
+    """One query as the routes see it: settings, plan, the renderer (whole map or working set), the scorer (its
+    render count spans every route) and the query image [H, W, 3] float32 at its own size."""
+
+    config: RefineConfig
+    plan: Plan
+    renderer: RendererLike
+    scorer: Scorer
+    image: np.ndarray
+    name: str | None = None
+
+    @property
+    def judge_cam(self) -> Camera:
+        """Where the rule judges a candidate: at the polish's size when it runs (a pose polished at the query's own
+        pixels is not the minimum of the 200 px cost, whose one-pixel moves may then descend)."""
+        return self.plan.cam_polish if self.config.polishes else self.plan.cam_final
+
+
+@dataclass
+class Candidate:
+    """A route's result: its pose and cost at ``judge_cam``, the coarse pose's cost there, the search's pose after
+    its pyramid levels (the coarse pose when no search ran), and the route's effort."""
+
+    route: str
+    pose: Pose
+    cost: float
+    cost_initial: float
+    after_coarse: Pose
+    polish: list[PolishStats] = field(default_factory=list)
+    levels: list[LevelStats] = field(default_factory=list)
+    history: list[float] = field(default_factory=list)
+    expansions: int = 0
+
+
+def gradient_route(ctx: QueryContext) -> Candidate:
+    """The polish alone from the coarse pose, coarse to fine over the pyramid, final and polish sizes."""
+    return _route(ctx, search=False)
+
+
+def search_route(ctx: QueryContext) -> Candidate:
+    """The best-first lattice search over the step levels from the coarse pose, then the polish at its size."""
+    return _route(ctx, search=True)
+
+
+def _route(ctx: QueryContext, search: bool) -> Candidate:
+    cfg, plan, scorer, coarse = ctx.config, ctx.plan, ctx.scorer, ctx.plan.coarse_pose
+    judge_cam = ctx.judge_cam
+    cost_initial = math.nan  # scored below: at the final size before the search, or at judge_cam after the polish
+    if search or judge_cam == plan.cam_final:  # the coarse cost at the scoring size: the search's start
+        scorer.set_query(plan.cam_final, ctx.image, renderer=ctx.renderer)
+        cost_initial = float(scorer([coarse])[0])
+    cand = Candidate("search" if search else "gradient", coarse, cost_initial, cost_initial, coarse)
+    if search:
+        _search_levels(ctx, cand)
+    if cfg.polishes:
+        cand.pose = _polish(ctx, cand, search)
+        if judge_cam != plan.cam_final:
+            scorer.set_query(judge_cam, ctx.image, renderer=ctx.renderer)
+            cand.cost_initial = float(scorer([coarse])[0])
+        cand.cost = float(scorer([cand.pose])[0])
+    return cand
+
+
+def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
+    """Run the step levels coarse to fine from ``cand`` (the coarse pose at its cost); leaves in ``cand`` the best
+    pose, its cost at the final size, the best pose after the pyramid levels and the levels' effort."""
+    cfg, plan, scorer = ctx.config, ctx.plan, ctx.scorer
+    best_pose, best_cost, best_cam = cand.pose, cand.cost, plan.cam_final
+    remaining = cfg.max_expansions
+    exact, lod = scorer.renderer, None
+    for li, (s_rot, s_t) in enumerate(plan.levels):
+        if remaining <= 0:
+            break
+        is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
+        cam_l = plan.cam_coarse if is_coarse else plan.cam_final
+        if is_coarse and lod is None and cfg.coarse_lod_pixels is not None and isinstance(exact, WorkingSet):
+            lod = coarse_lod(exact.full, plan.cam_coarse, plan.coarse_pose, plan.max_shift, plan.max_rotation_deg,
+                             cfg.coarse_lod_pixels)
+        want = lod if is_coarse and lod is not None else exact
+        if cam_l != best_cam or want is not scorer.renderer:
+            scorer.set_query(cam_l, ctx.image, renderer=want)
+            best_cost = float(scorer([best_pose])[0])
+            best_cam = cam_l
+        if cfg.neighbourhood == "paper":
+            space = PaperSpace(best_pose, s_rot, s_t)
+        else:
+            space = LatticeSpace(best_pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
+        lr = best_first(space, best_cost, scorer, plan.allows, budget=min(cfg.max_expansions_per_level, remaining),
+                        patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost,
+                        pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
+        remaining -= lr.expansions
+        best_pose, best_cost = space.pose(lr.best_key), lr.best_cost
+        cand.expansions += lr.expansions
+        cand.history.extend(lr.history)
+        cand.levels.append(LevelStats(s_rot, s_t, cam_l.width, cam_l.height, lr.expansions, lr.renders,
+                                      lr.best_cost, lr.stopped))
+        if is_coarse:
+            cand.after_coarse = best_pose
+    if best_cam != plan.cam_final or scorer.renderer is not exact:
+        scorer.set_query(plan.cam_final, ctx.image, renderer=exact)
+        best_cost = float(scorer([best_pose])[0])
+    cand.pose, cand.cost = best_pose, best_cost
+
+
+def _polish(ctx: QueryContext, cand: Candidate, search: bool) -> Pose:
+    """Levenberg-Marquardt on the cs cost (``refine/polish.py``) from ``cand.pose`` at the polish size; on the
+    gradient route, coarse to fine over the coarse, final and polish sizes. Appends to ``cand.polish``."""
+    cfg, plan = ctx.config, ctx.plan
+    cams = [plan.cam_polish]
+    if not search:
+        cams = list(dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish]))
+    pose = cand.pose
+    for i, cam in enumerate(cams):
+        q = ctx.renderer.upload_window_query(resize_image(ctx.image, cam.width, cam.height))
+        last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
+        pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
+                             allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,
+                             min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX)
+        cand.polish.append(stats)
+    return pose

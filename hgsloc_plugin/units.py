@@ -1,0 +1,64 @@
+"""Command-line values with units and counts, shared by every command line (``hgsloc``, the hloc step, examples).
+
+Lengths are in scene units, written as metres ('0.25m', '25cm', '250mm' or a bare number); angles in degrees
+('5deg', '5' or '0.1rad').
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+
+def count_arg(text: str, minimum: int = 0) -> int:
+    """argparse type of a count (``--limit``, ``--workers``): an integer >= ``minimum``."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = None
+    if n is None or n < minimum:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
+    return n
+
+
+def positive_count_arg(text: str) -> int:
+    """argparse type of a count that must be >= 1 (``--sample``, ``--queries``)."""
+    return count_arg(text, 1)
+
+
+_LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
+_ANGLE_UNITS = {"": 1.0, "deg": 1.0, "rad": 57.29577951308232}
+
+
+def _with_unit(text: str, units: dict[str, float], flag: str) -> float:
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-z]*)\s*", text)
+    if not m or m.group(2) not in units:
+        raise ValueError(f"{flag}: expected a positive number with an optional unit "
+                         f"({', '.join(u for u in units if u)}), got {text!r}")
+    v = float(m.group(1)) * units[m.group(2)]
+    if not v > 0:
+        raise ValueError(f"{flag}: must be > 0, got {text!r}")
+    return v
+
+
+def parse_length(text: str, flag: str = "--max-shift") -> float:
+    """'0.25m', '25cm', '0.25' -> 0.25 (scene units, taken as metres)."""
+    return _with_unit(text, _LENGTH_UNITS, flag)
+
+
+def parse_angle(text: str, flag: str = "--max-rotation") -> float:
+    """'5deg', '5', '0.1rad' -> degrees."""
+    return _with_unit(text, _ANGLE_UNITS, flag)
+
+
+def prior_error_overrides(error: str | None, rotation_error: str | None,
+                          flags: tuple[str, str] = ("--prior-error", "--prior-rotation-error")) -> dict:
+    """``RefineConfig`` fields from the priors' typical-error flags ('2cm', '1deg'; None: not given), for every
+    command line that takes them (``hgsloc refine``, the hloc step, the examples); a bad value raises ValueError
+    naming its flag (``flags``)."""
+    out = {}
+    if error is not None:
+        out["prior_error"] = parse_length(error, flags[0])
+    if rotation_error is not None:
+        out["prior_error_deg"] = parse_angle(rotation_error, flags[1])
+    return out

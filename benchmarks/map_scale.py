@@ -56,6 +56,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     from hgsloc_plugin.demo.run import QUERY_CAMERA
     from hgsloc_plugin.demo.scene import densify, make_room_scene
     from hgsloc_plugin.noise import apply_protocol
+    from hgsloc_plugin.refine.plan import make_plan
 
     arch = hp.init()
     room = make_room_scene()
@@ -69,8 +70,8 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     cfg = hp.RefineConfig(working_set_min=0, **PATHS[path])  # a working set, when on, at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
-    plan = refiner._plan(cam, priors[0])
-    renderer = refiner._working_set(plan, priors[0])
+    plan = make_plan(cfg, scene, cam, priors[0], hp.QueryPrior())
+    renderer = refiner._working_set(plan)
     poses = [apply_protocol(priors[0], "1cm,0.5deg", np.random.default_rng(s)) for s in range(14)]
     renderer.render_full(plan.cam_final, poses)  # warm-up: compile, workspaces
     t0 = time.perf_counter()

@@ -54,12 +54,13 @@ def cmd_refine(args) -> int:
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    scene, pf = inputs = _inputs(args)
     if not args.skip_check:  # refining poses in another frame or convention would return nonsense
-        rep = _check(args, 4)
+        rep = _check(args, 4, inputs=inputs)
         if not rep.ok:
             raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
                              "refines anyway)")
-    rep = refine_pose_file(args.scene, Path(args.poses), Path(args.images), _intrinsics(args), Path(args.out),
+    rep = refine_pose_file(scene, pf, Path(args.images), _intrinsics(args), Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
                            workers=args.workers, ray_address=args.ray_address,
@@ -82,14 +83,19 @@ def summary_line(t: dict, out) -> str:
             + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
 
 
-def _check(args, sample: int, figures=None):
+def _inputs(args):
+    """The command's scene and pose file, each read once: (GaussianScene, PoseFile)."""
     from .adapters import read_poses
-    from .adapters.names import resolve_image
-    from .check import check_poses
     from .scene import GaussianScene
 
-    scene = GaussianScene.from_ply(args.scene)
-    pf = read_poses(args.poses)
+    return GaussianScene.from_ply(args.scene), read_poses(args.poses)
+
+
+def _check(args, sample: int, figures=None, inputs=None):
+    from .adapters.names import resolve_image
+    from .check import check_poses
+
+    scene, pf = inputs or _inputs(args)
     images = Path(args.images)
     return check_poses(scene, {n: pf[n] for n in pf}, lambda n: resolve_image(n, images), _intrinsics(args),
                        sample=sample, background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0),

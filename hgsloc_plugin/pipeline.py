@@ -144,7 +144,7 @@ def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], QueryPrior]:
     return region_of
 
 
-def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Path, images: Path,
+def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Path | PoseFile, images: Path,
                      intrinsics: Callable[[str, int, int], Camera], output: Path, *,
                      config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
                      gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
@@ -154,7 +154,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
 
     Args:
         scene: the 3DGS map (object, .ply path, or a ready HGSLocPlugin), in the frame of the poses.
-        poses: the localizer's pose file. images: folder holding the query images (any name style).
+        poses: the localizer's pose file (a path, or one read already). images: folder holding the query images
+            (any name style).
         intrinsics: (name, width, height) -> Camera. output: refined pose file (must differ from ``poses``).
         limit: refine only the first N queries (the rest keep their input pose).
         gt_variant: recorded in the report ("sfm", "dslam", ...).
@@ -167,12 +168,13 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
     Returns:
         The report dict (also written as JSON).
     """
-    poses, images, output = Path(poses), Path(images), Path(output)
+    pf = poses if isinstance(poses, PoseFile) else None
+    poses, images, output = Path(pf.path if pf is not None else poses), Path(images), Path(output)
     if limit is not None and limit < 0:  # a negative slice would refine all but the last -limit queries
         raise ValueError(f"limit must be >= 0 (the first N queries), got {limit}")
     if output.exists() and output.resolve() == poses.resolve():
         raise ValueError(f"{output}: refusing to overwrite the input pose file")
-    pf = read_poses(poses, dialect)
+    pf = pf if pf is not None else read_poses(poses, dialect)
     refiner = scene if isinstance(scene, HGSLocPlugin) else HGSLocPlugin(scene, config)
     done, refined = _resume(pf, output)
     report = {

@@ -44,10 +44,7 @@ def _real_queries(name: str, limit: int):
 def _priors(truths, rot_deg: float, shift_of_depth: float, seed: int, scene, cam):
     """Exact-magnitude priors: ``rot_deg`` degrees and ``shift_of_depth`` x the query's median depth."""
     from hgsloc_plugin.noise import se3_noise
-    try:
-        from hgsloc_plugin.refine.plan import median_depth
-    except ImportError:  # before the refiner's split
-        from hgsloc_plugin.refine.refiner import median_depth
+    from hgsloc_plugin.refine.plan import median_depth
 
     rng = np.random.default_rng(seed)
     return [se3_noise(g, rot_deg, shift_of_depth * median_depth(scene, cam, g), rng) for g in truths]

@@ -41,6 +41,7 @@ def _dataset(name):
     return d, cam, hp.GaussianScene.from_ply(d / f"{name}.ply"), {n: pf[n] for n in pf}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["snow", "lego"])
 def test_check_passes_true_poses_and_names_each_convention_error(name):
     d, cam, scene, gt = _dataset(name)
@@ -61,6 +62,7 @@ def test_check_passes_true_poses_and_names_each_convention_error(name):
     assert other.verdict == "disagree" and not other.ok, other.message()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,cm,deg", [("snow", 10.0, 3.0), ("lego", 3.0, 1.0)])
 def test_check_accepts_priors_a_localizer_leaves_off(name, cm, deg):
     """Priors off by a localizer's error (cm-equivalent: scaled by the median depth over 2 m): the raw costs cannot
@@ -112,6 +114,7 @@ def _cli(args):
     return subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli"] + args, capture_output=True, text=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (DATA / "snow" / "snow.ply").exists(), reason="../shared/data/snow not present")
 def test_trainer_folder_for_check_refine_render_and_api(tmp_path):
     out = _trainer_folder(tmp_path)
@@ -146,6 +149,7 @@ def test_trainer_folder_for_check_refine_render_and_api(tmp_path):
     assert p.returncode == 2 and len(err) == 1 and "point_cloud" in err[0] and "Traceback" not in p.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (DATA / "snow" / "snow.ply").exists(), reason="../shared/data/snow not present")
 def test_refine_stops_on_a_convention_error_unless_skipped(tmp_path):
     out = _trainer_folder(tmp_path, invert=True)

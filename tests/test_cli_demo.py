@@ -44,6 +44,7 @@ def tiny_case(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_cli_refine_evaluate_and_resume(tiny_case, capsys):
     d = tiny_case
     out = d / "refined.txt"
@@ -89,6 +90,7 @@ def test_cli_refine_evaluate_and_resume(tiny_case, capsys):
     assert after["recall"]["5cm5deg"] == pytest.approx(np.mean([t < 0.05 and r < 5.0 for t, r in errs]))
 
 
+@pytest.mark.slow
 def test_cli_user_errors_are_one_line(tiny_case, tmp_path):
     d = tiny_case
     cases = [
@@ -139,6 +141,7 @@ def test_cli_render(tiny_case, tmp_path):
     assert a.shape == (96, 128, 3) and np.abs(a - b).max() < 1.5 / 255
 
 
+@pytest.mark.slow
 def test_hloc_step(tiny_case, tmp_path):
     from hgsloc_plugin import hloc_step as step
 
@@ -178,6 +181,7 @@ def test_hloc_step(tiny_case, tmp_path):
     assert not (tmp_path / "d.txt").exists()
 
 
+@pytest.mark.slow
 def test_demo_runs_and_improves(tmp_path):
     from hgsloc_plugin.demo.run import run_demo
 
@@ -228,6 +232,7 @@ def test_noise_protocols_have_exact_magnitudes():
     assert parse_protocol("q3_t3") == ("qt", 3, 3)
 
 
+@pytest.mark.slow
 def test_cli_refine_writes_figures(tiny_case, tmp_path):
     from PIL import Image
 
@@ -241,6 +246,7 @@ def test_cli_refine_writes_figures(tiny_case, tmp_path):
     assert Image.open(pngs[0]).size == (2 * 128 + 4, 2 * 96 + 4)
 
 
+@pytest.mark.slow
 def test_cli_gradient_preset_and_no_polish(tiny_case, tmp_path):
     """As a user runs it: --config gradient refines with derivative passes only; --no-polish turns the polish off."""
     d = tiny_case

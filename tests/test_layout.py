@@ -98,7 +98,8 @@ def test_no_import_goes_up_a_layer():
 
 def test_lower_packages_never_import_the_command_layer():
     lower = ("adapters", "kernels", "refine")
-    bad = [f"{'/'.join(p)} imports {'.'.join(t)}" for p, ts in GRAPH.items() if p[0] in lower for t in ts if t[0] in TOP]
+    bad = [f"{'/'.join(p)} imports {'.'.join(t)}" for p, ts in GRAPH.items() if p[0] in lower
+           for t in ts if t[0] in TOP]
     assert not bad, bad
 
 

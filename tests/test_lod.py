@@ -100,9 +100,10 @@ def test_refine_with_coarse_lod_scores_fine_levels_on_the_exact_map():
     r0 = hp.HGSLocPlugin(scene, cfg.replace(coarse_lod_pixels=None)).refine(img, cam, prior)
     assert r.cost_initial == r0.cost_initial  # scored before the levels, on the exact map
     # the judged cost is the exact map's at the returned search pose
-    exact = hp.HGSLocPlugin(scene, cfg.replace(search=False, polish_iterations=1))
-    plan = exact._plan(cam, prior)
     from hgsloc_plugin.image import resize_image
+    from hgsloc_plugin.refine.plan import make_plan
+
+    plan = make_plan(cfg, scene, cam, prior, hp.QueryPrior())
     from hgsloc_plugin.refine.scorer import Scorer
 
     s = Scorer(get_renderer(scene), "cs", (0.0, 0.0, 0.0), 0.0)

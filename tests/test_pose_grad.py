@@ -56,9 +56,11 @@ def smooth_scene():
     return hp.GaussianScene.from_arrays(s.means, s.quats, s.scales * 3, s.opacities * 0.5, sh=s.sh)
 
 
-CASES = [("donut.ply", 64, 48), ("donut.ply", 40, 30), ("small_sh3.ply", 64, 48), ("random", 64, 48)]
+# the smallest images that cover every branch: partial tiles (40x30 at 8 px tiles), SH degree 3, a random scene
+CASES = [("donut.ply", 40, 30), ("small_sh3.ply", 64, 48), ("random", 64, 48)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,w,h", CASES)
 def test_derivative_images_match_float64_reference(name, w, h):
     scene = smooth_scene() if name == "random" else hp.GaussianScene.from_ply(shared_path("scenes", name))
@@ -245,6 +247,7 @@ def test_line_search_lengthens_short_gauss_newton_steps():
     assert p1.errors_to(target)[0] < 1e-3
 
 
+@pytest.mark.slow
 def test_refine_reports_polish_and_gradient_preset():
     scene = make_room_scene()
     cam = hp.Camera.from_fov(160, 120, 65.0)
@@ -277,6 +280,7 @@ def test_refine_reports_polish_and_gradient_preset():
         assert t < 0.005 and a < 0.1, (t, a)
 
 
+@pytest.mark.slow
 def test_gradient_first_falls_back_to_the_search_and_skips_it_at_a_settled_prior():
     """gradient_first: a prior beyond the gradient's reach (27 cm / 9 deg in the room) is refused on the gradient
     route and found by the search; a prior at the truth sits in a sharp, aligned minimum: no search is run."""

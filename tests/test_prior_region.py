@@ -33,6 +33,7 @@ from .conftest import room_query
 POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "poses" / "7scenes"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not POSES.exists(), reason="../shared/data/poses/7scenes not present")
 def test_inlier_tables_are_the_percentiles_of_real_ace_and_glace_errors():
     """Recompute the tables from the real files: per inlier bin, the shipped 99th percentiles and medians match
@@ -82,6 +83,7 @@ def room():
     return scene, cam, gt, img, prior
 
 
+@pytest.mark.slow
 def test_per_call_region_equals_the_configured_one_and_overrides_it(room):
     scene, cam, gt, img, prior = room
     by_config = hp.HGSLocPlugin(scene, hp.RefineConfig(max_shift=0.05, max_rotation_deg=1.5)).refine(img, cam, prior)
@@ -130,6 +132,7 @@ def _close(a, b, tol=1e-7):
     return t < tol and r < 1e-5
 
 
+@pytest.mark.slow
 def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
     """The prior's expected error given (per call, from the config or depth-relative alike): the accepted refined
     pose is fused with the prior, as an independent Gaussian product computes it; a prior far more precise than

@@ -97,6 +97,7 @@ def test_trust_region_is_respected():
     assert np.linalg.norm(space.pose(res.best_key).centre() - centre) <= 0.1 + 1e-12
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("metric", ["sad", "affine"])
 def test_refine_reduces_error_on_rendered_queries(room, metric):
     gts = query_poses(3, seed=4)

@@ -109,6 +109,7 @@ def _snow():
     return scene, cam, out
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SNOW / "snow.ply").exists(), reason="../shared/data/snow not present")
 def test_real_photos_true_pose_is_kept_and_priors_improve():
     """Real photos, imperfect map: started at the true pose, the search drifts (the map's cost minimum is off
@@ -132,6 +133,7 @@ def test_real_photos_true_pose_is_kept_and_priors_improve():
         assert t1 <= 3 * r2.sigma_t and r1 <= 3 * r2.sigma_r_deg, (t1, r2.sigma_t, r1, r2.sigma_r_deg)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SNOW / "snow.ply").exists(), reason="../shared/data/snow not present")
 def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
     """Snow query 0: the map's own cost minimum lies ~2.9 cm-equivalent from its SfM pose, so from a 1 cm-eq /
@@ -233,6 +235,7 @@ def test_cli_evaluate_names_unmatched_images(tiny_case, tmp_path):  # noqa: F811
     assert "1 estimates name no image" in p.stderr and "stray.png" in p.stderr
 
 
+@pytest.mark.slow
 def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path):  # noqa: F811
     d = tiny_case
     p = _run_cli(["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images",
@@ -258,6 +261,7 @@ def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path
     assert p.returncode == 0 and p.stdout.strip().splitlines() == [f"wrote {tmp_path / 'x.png'} (64x48)"]
 
 
+@pytest.mark.slow
 def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
     """A query that failed (its image missing) is retried by the next run once the image is there."""
     import shutil

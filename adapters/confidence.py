@@ -1,30 +1,13 @@
-"""A localizer's own confidence in each pose, as a per-query trust region for the refinement.
+"""A localizer's own confidence in each pose, as a query's trust region and expected prior error.
 
 ACE and GLACE write each pose's RANSAC inlier count (the 11th column of their pose files, CONVENTIONS §2), and
-their error falls steeply with it. Measured on the seven 7-Scenes test sets against the SfM pGT
-(``../shared/data/poses/7scenes``, 2 x 17,000 poses, ``tests/test_prior_region.py`` recomputes it): the 99th
-percentile of the camera-centre error is 65 cm below 1,000 inliers, 5.2 cm at 2,000-2,500 and 2.4 cm above 4,000;
-of the rotation error 7.6, 1.7 and 0.6 deg.
-
-:func:`inlier_region` turns a count into a trust region of ``REGION_MARGIN`` times its bin's 99th percentile: a
-pose its localizer is sure of cannot be carried further than that localizer's worst errors (a false basin, a
-repetitive texture), while a pose it doubts keeps a wide region. It does not stop the small drift of an
-imperfect map's own cost minimum (snow query 0: 2.9 cm-equivalent from its SfM pose), which lies inside the
-region of most counts: on the real snow photos with 18 priors drawn from ACE's 7-Scenes errors and inlier counts
-(``benchmarks/trust.py``) the outcome equals the default region's (one query worse, that one); in another draw
-of 18 (seeds 300-302) the region kept it (0 worse instead of 1), at margins 1.0 and 1.5, not 2.0.
-
-:func:`inlier_prior_error` gives the bin's median error, the prior's expected error (``Refiner.refine``'s
-``prior_error``): the refined pose is fused with the prior, each weighted by its uncertainty
-(``refine/trust.py``, ``fuse_with_prior``). This is what stops an imperfect map's drift on confident poses: on the
-real snow photos with the 18 ACE-shaped priors and their counts (``benchmarks/trust.py``, row "ACE-shaped, ACE's
-inliers") 9 improved, 9 unchanged, 0 made worse (without the counts 6 / 11 / 1), recall 5/2/1 cm 100/94/83 (the
-priors' 100/94/78); on lego 9 / 9 / 0 (without: 7 / 9 / 2; recall at 1 cm 67 instead of 44); on the room
-7 / 11 / 0 either way. :func:`inlier_trust` gives both as ``Refiner.refine`` keywords.
-
-Errors scale with the scene: the shift is measured at 7-Scenes' typical depth (2 m) and given as a fraction of
-the query's median depth (``Refiner.refine``'s ``max_shift_depth``, which the refiner multiplies by the depth it
-computes anyway), so the same image motion is allowed in any map's units.
+their error falls steeply with it. The tables below are, per inlier-count bin, the 99th percentile and the median
+of ACE + GLACE's 7-Scenes errors against the SfM pGT (``../shared/data/poses/7scenes``; the test
+``tests/test_prior_region.py`` recomputes them). :func:`inlier_region` turns a count into a trust region of
+``REGION_MARGIN`` times its bin's 99th percentile, :func:`inlier_prior_error` into the bin's median error, and
+:func:`inlier_trust` gives both as a ``QueryPrior``. Lengths are fractions of the query's median depth (measured
+at 7-Scenes' typical 2 m), so the same image motion is allowed in any map's units. What they achieve:
+``benchmarks/defaults.md``.
 """
 
 from __future__ import annotations

@@ -38,8 +38,7 @@ logger = logging.getLogger("hgsloc_plugin")
 
 SIDE = 200
 ALIGN_SIDE = 100  # the alignment's finest size (pixels, longer side)
-# Measured (median masked cs cost of the true poses; the wrong readings): snow 0.263 (0.46-1.0), lego 0.496
-# (0.81-1.0); true poses moved by a random rigid transform: snow best reading 0.461, second 0.619.
+# thresholds on the masked cs cost (where they come from: benchmarks/defaults.md)
 GOOD = 0.55  # the best reading must cost less than this
 CLEARLY_BETTER = 0.7  # ... and less than this fraction of the second-best reading
 MASK_ALPHA = 0.5  # compare where the map renders something: an empty rendering costs 1, not a match

@@ -4,10 +4,8 @@ Taichi 1.7 translates every kernel's Python AST in each new process, also when i
 compiled kernel on disk. For each AST node it visits, the translator first formats the node's source position
 (``ASTTransformerContext.get_pos_info``: the source line wrapped by ``textwrap`` with a caret line under it, the
 text of a compile error), and it visits a node once per unrolled iteration (``ti.static`` loops) and per inlined
-call of a ``ti.func``. In the pose-derivative kernels the same few hundred nodes are formatted about 100,000
-times. Measured on this 2-core CPU (``benchmarks/startup.py``, kernels already in the offline cache): a process's
-first query spent 5.6-9.0 s loading kernels before this module and the run-time loops of ``projection_grad`` and
-the query statistics, 2.4 s after; the memo alone takes 4.4 s to 2.4 s.
+call of a ``ti.func``: in the pose-derivative kernels the same few hundred nodes are formatted about 100,000
+times (what that costs: ``benchmarks/defaults.md``).
 
 :func:`memoize_source_info` wraps ``get_pos_info`` with a cache keyed on everything the text is made of (file,
 function, line offset, indentation, node type and span, the source lines of the span), so each distinct text

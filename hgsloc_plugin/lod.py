@@ -1,26 +1,13 @@
-"""Level of detail for the coarse pyramid levels: Gaussians far below a pixel merged per cluster.
+"""Level of detail for the coarse pyramid levels: Gaussians far below a pixel merged per cell.
 
-At map scale a coarse scoring image is over-resolved: the densified 1M-Gaussian room has ~120k Gaussians in a
-100x75 image (16 per pixel), and the projection, sort and blend cost per Gaussian, not per pixel, so a coarse
-render costs as much as a fine one (45 ms at 1M on this CPU). The coarse levels only have to find the basin;
-the final level, the polish and the acceptance rule render the exact map. :func:`coarse_lod` builds, once per
-query, a renderer for the coarse camera over the query's trust region in which
-
-- every Gaussian whose standard deviation is at most ``tau_px`` pixels (at the closest depth any pose of the
-  region gets) is put in a cubic cell of side at most ``tau_px`` pixels (power-of-two sides, so the cells of
-  one size form a grid), and the Gaussians of one cell are replaced by one: weights ``w = o * a`` (opacity
-  times the dilated footprint ``a`` in pixels^2), weighted mean, moment-matched covariance (members'
-  covariances plus the spread of their centres), weighted SH coefficients, and the opacity that composites
-  like the members when they overlap and conserves their footprint when they do not,
-  ``1 - prod(1 - o_i min(1, a_i / a))``;
-- every other Gaussian, and every cell with one member, is kept as it is.
-
-Merged Gaussians sit in the resident order at their first member's place (the Z-curve locality the kernels
-rely on). Measured on the densified room at 100x75: 4x (195k) at 2 px keeps 70 % of the region's Gaussians at
-35 dB PSNR against the exact map, 10x at 2 / 3 px 46 / 25 % at 32 / 26 dB; the 1M room at 2 px 42 % at 28 dB
-and a coarse render 2.8x faster (``tests/test_lod.py``). Per query (``benchmarks/map_scale.py``, two runs)
-0.90-1.37x from 195k to 1M, and the 1M outcomes changed with it (better in one run, worse in the other): opt-in
-(``RefineConfig.coarse_lod_pixels``).
+:func:`coarse_lod` builds, once per query, a renderer for the coarse camera over the query's trust region in
+which every Gaussian whose standard deviation is at most ``tau_px`` pixels (at the closest depth any pose of the
+region gets) is put in a cubic cell of side at most ``tau_px`` pixels (power-of-two sides), and the Gaussians of
+one cell are replaced by one: weights ``w = o * a`` (opacity times the dilated footprint ``a`` in pixels^2),
+weighted mean, moment-matched covariance, weighted SH coefficients, and the opacity
+``1 - prod(1 - o_i min(1, a_i / a))``; every other Gaussian, and every one-member cell, is kept as it is. Merged
+Gaussians sit in the resident order at their first member's place. The result is approximate (opt-in:
+``RefineConfig.coarse_lod_pixels``; measurements in ``benchmarks/defaults.md``).
 """
 
 from __future__ import annotations
@@ -113,18 +100,18 @@ def merge_cells(arrays: dict[str, np.ndarray], depth: np.ndarray, f: float, tau_
     return out, source
 
 
-def coarse_lod(renderer: Renderer, camera: Camera, pose: Pose, max_t: float, max_r_deg: float,
+def coarse_lod(renderer: Renderer, camera: Camera, pose: Pose, max_shift: float, max_rotation_deg: float,
                tau_px: float = 0.5) -> Renderer:
-    """A renderer for ``camera`` and every pose within ``max_t`` / ``max_r_deg`` of ``pose``: the Gaussians
+    """A renderer for ``camera`` and every pose within ``max_shift`` / ``max_rotation_deg`` of ``pose``: the Gaussians
     such poses can see (``Renderer.working_set``), sub-``tau_px`` ones merged per cell (:func:`merge_cells`).
     Approximate: for the coarse levels only."""
     if not tau_px > 0:
         raise ValueError(f"tau_px must be > 0, got {tau_px}")
-    ws = renderer.working_set([camera], pose, max_t, max_r_deg)
+    ws = renderer.working_set([camera], pose, max_shift, max_rotation_deg)
     arrays = ws.arrays()
     z = arrays["means"].astype(np.float64) @ pose.R[2] + pose.tvec[2]
     near = max(renderer.config.near_plane, 1e-6)
-    depth = np.maximum(z - max_t, near)  # the closest any pose of the region gets
+    depth = np.maximum(z - max_shift, near)  # the closest any pose of the region gets
     f = max(camera.fx, camera.fy)
     merged, source = merge_cells(arrays, depth, f, tau_px, renderer.config.eps2d)
     src = np.where(source >= 0, ws.source_index[np.maximum(source, 0)], -1)

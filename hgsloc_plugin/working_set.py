@@ -4,7 +4,7 @@ re-selected when the search leaves it.
 A search scores poses within a few pixels of image motion of each other, while its trust region allows tens:
 selecting once for the whole trust region (``Renderer.working_set``) keeps the Gaussians seen by any pose of
 it, 2-3x those seen by the poses actually scored (975k-Gaussian room: 368k vs about 110k in the coarse image).
-:class:`WorkingSet` selects for a region of ``radius_t`` / ``radius_r_deg`` around the first batch it renders
+:class:`WorkingSet` selects for a region of ``radius_shift`` / ``radius_rotation_deg`` around the first batch it renders
 and, when a batch has a pose outside that region, selects again around that batch. Each selection is the
 conservative test of ``kernels/cull.py`` and keeps the resident order, so every image and cost equals the
 whole map's bit for bit, whichever selection rendered it (a batch that does not fit one region is rendered
@@ -39,7 +39,7 @@ class WorkingSet:
     Args:
         renderer: the whole map's renderer.
         cameras: every camera (size, intrinsics) that will be rendered with.
-        radius_t / radius_r_deg: the selection region's camera-centre shift (scene units) and rotation
+        radius_shift / radius_rotation_deg: the selection region's camera-centre shift (scene units) and rotation
             (degrees) around its centre.
 
     Attributes:
@@ -47,13 +47,13 @@ class WorkingSet:
         fit one region); largest: the largest selection's size.
     """
 
-    def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_t: float, radius_r_deg: float):
-        if not (radius_t > 0 and radius_r_deg > 0):
-            raise ValueError(f"working-set radii must be > 0, got {radius_t}, {radius_r_deg}")
+    def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_shift: float, radius_rotation_deg: float):
+        if not (radius_shift > 0 and radius_rotation_deg > 0):
+            raise ValueError(f"working-set radii must be > 0, got {radius_shift}, {radius_rotation_deg}")
         self.full = renderer
         self.cameras = list(cameras)
-        self.radius_t = float(radius_t)
-        self.radius_r = float(radius_r_deg)
+        self.radius_shift = float(radius_shift)
+        self.radius_rotation_deg = float(radius_rotation_deg)
         self.selections = 0
         self.fallback_poses = 0
         self.largest = 0
@@ -77,8 +77,8 @@ class WorkingSet:
 
     def _inside(self, centre: Pose, poses: list[Pose]) -> bool:
         c0, R0 = centre.centre(), centre.R
-        return all(np.linalg.norm(p.centre() - c0) <= self.radius_t and rotation_angle_deg(R0, p.R) <= self.radius_r
-                   for p in poses)
+        return all(np.linalg.norm(p.centre() - c0) <= self.radius_shift
+                   and rotation_angle_deg(R0, p.R) <= self.radius_rotation_deg for p in poses)
 
     def covering(self, poses: list[Pose]) -> RendererLike:
         """A renderer whose images of ``poses`` equal the whole map's: the current selection when its region
@@ -89,7 +89,7 @@ class WorkingSet:
         if not self._inside(centre, poses):
             self.fallback_poses += len(poses)
             return self.full
-        self._sub = self.full.working_set(self.cameras, centre, self.radius_t, self.radius_r)
+        self._sub = self.full.working_set(self.cameras, centre, self.radius_shift, self.radius_rotation_deg)
         self._centre = centre
         self.selections += 1
         self.largest = max(self.largest, self._sub.n)

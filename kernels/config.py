@@ -12,9 +12,8 @@ class RasterConfig:
     Attributes:
         tile_size: tile edge in pixels.
         grad_tile_size: tile edge of the lists the pose-derivative pass walks (``pose_grad.blend_grad``: one task
-            per pixel walks its tile's whole depth-ordered list until the pixel is opaque). Smaller tiles give
-            shorter lists for the same images and derivatives: at 1M Gaussians (the densified room, 320x240) a
-            pass took 366-388 ms at 16 px and 277-294 ms at 8; no change at 49k. The renders keep ``tile_size``.
+            per pixel walks its tile's whole depth-ordered list until the pixel is opaque): smaller tiles give
+            shorter lists for the same images and derivatives. The renders keep ``tile_size``.
         eps2d: dilation added to the 2D covariance diagonal.
         alpha_max: cap on per-Gaussian alpha (gsplat 0.999, Inria 0.99).
         alpha_min: Gaussians with alpha below this are skipped (1/255).

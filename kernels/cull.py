@@ -1,7 +1,7 @@
 """Per-query working set: which Gaussians can reach any image rendered from a region of poses.
 
-All poses of one query's search lie in a trust region around the coarse pose: camera centres within ``max_t``
-of its centre, rotations within ``max_r`` of its rotation. A Gaussian that no pose of that region can see is
+All poses of one query's search lie in a trust region around the coarse pose: camera centres within ``max_shift``
+of its centre, rotations within ``max_rotation`` of its rotation. A Gaussian that no pose of that region can see is
 culled by the projection kernel for every render of the search, so it can be dropped once per query. The
 test is conservative (it never drops a Gaussian that some pose of the region would render) and uses only the
 bounds the projection kernel itself obeys:
@@ -14,10 +14,10 @@ bounds the projection kernel itself obeys:
   edge x/z <= X" becomes the linear condition ``(X + B) z - x >= -A`` on the camera-frame centre, i.e. the
   centre lies at most ``A / |n|`` outside a plane through the camera centre with normal
   ``n = (-1, 0, X + B)``; likewise for the other three edges, and ``z >= near`` for the near plane.
-- for a pose of the region, the camera-frame centre is ``q' = R_d (q - d)`` with ``|d| <= max_t`` and
-  ``R_d`` a rotation by at most ``max_r``, ``q`` the centre in the coarse camera's frame. So
-  ``n.q' = (R_d^T n).q - (R_d^T n).d <= |q| cos(max(0, phi - max_r)) + max_t`` where ``phi`` is the angle
-  between ``n`` and ``q``.
+- for a pose of the region, the camera-frame centre is ``q' = R_d (q - d)`` with ``|d| <= max_shift`` and
+  ``R_d`` a rotation by at most ``max_rotation``, ``q`` the centre in the coarse camera's frame. So
+  ``n.q' = (R_d^T n).q - (R_d^T n).d <= |q| cos(max(0, phi - max_rotation)) + max_shift`` where ``phi`` is the
+  angle between ``n`` and ``q``.
 
 A Gaussian is dropped when that upper bound fails one of the five planes (no pose of the region sees it); it is
 kept otherwise (and, in the gsplat radius mode, its opacity
@@ -65,7 +65,7 @@ def keep_kernel(config: RasterConfig):
         means [N, 3], smax [N] (largest scale per Gaussian), opacities [N],
         viewmat [3, 4] (coarse world-to-camera), planes [5, 4] (unit normal n, offset o: a pose sees the
         Gaussian only if n . q' >= -o with ``o = A_factor * smax + o_const`` per plane, see ``planes()``),
-        a_factor [5] (per plane, multiplies smax), max_t, max_r (radians);
+        a_factor [5] (per plane, multiplies smax), max_shift, max_rotation (radians);
         output: keep [N] int32 (1 = in the working set).
     """
     alpha_min = config.alpha_min
@@ -79,8 +79,8 @@ def keep_kernel(config: RasterConfig):
         viewmat: ti.types.ndarray(dtype=ti.f64, ndim=2),
         planes: ti.types.ndarray(dtype=ti.f64, ndim=2),
         a_factor: ti.types.ndarray(dtype=ti.f64, ndim=1),
-        max_t: ti.f64,
-        max_r: ti.f64,
+        max_shift: ti.f64,
+        max_rotation: ti.f64,
         out: ti.types.ndarray(dtype=ti.i32, ndim=1),
     ):
         for i in range(means.shape[0]):
@@ -100,8 +100,8 @@ def keep_kernel(config: RasterConfig):
                     c = ti.cast(1.0, ti.f64)
                     if d > 0.0:
                         c = ti.min(1.0, ti.max(-1.0, n.dot(q) / d))
-                    ang = ti.max(0.0, ti.acos(c) - max_r)
-                    if d * ti.cos(ang) + max_t < -(a_factor[k] * s + planes[k, 3]):
+                    ang = ti.max(0.0, ti.acos(c) - max_rotation)
+                    if d * ti.cos(ang) + max_shift < -(a_factor[k] * s + planes[k, 3]):
                         ok = 0
             out[i] = ok
 

@@ -4,13 +4,12 @@ Per pose: gather the visible Gaussians, sort them by depth with a stable LSD rad
 (depths are positive, so the bit pattern orders like the value), then a stable counting sort by tile id
 (count, prefix sum, scatter). Each tile's list therefore ends up in depth order, ties in index order, the
 same key order as gsplat's (tile | depth) sort. Each Gaussian's tile rectangle travels through the radix
-passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id
-(at 1M Gaussians, 8 poses: 21 -> 17 ms per pose). Poses are processed in parallel, each pose serially;
+passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id.
+Poses are processed in parallel, each pose serially;
 this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
 ``tests/reference/render_torch.py::bin_tiles``.
 
-On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread: on an H100
-the serial sort made a render of 49k Gaussians take 3.9 ms and of 195k 9.5 ms, slower than 16 CPU threads).
+On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread).
 There (``sort="parallel"``) each visible Gaussian writes one 64-bit key per tile it touches, in parallel,
 ``(pose * tiles + tile) << 32 | depth bits``, at its exclusive prefix sum of the tile counts
 (:func:`isect_keys_kernel`); the keys are sorted by a stable device radix sort (``torch.sort(stable=True)``,

@@ -73,20 +73,20 @@ def test_coarse_lod_fidelity_and_exactness_without_merges():
     full = get_renderer(scene)
     cam = hp.Camera.from_fov(320, 240, 65.0).with_max_side(100)
     T = query_poses(1, seed=5)[0]
-    max_t, max_r = 0.2, 5.0
-    poses = [T] + [se3_noise(T, max_r * 0.5, max_t * 0.5, np.random.default_rng(s)) for s in range(3)]
-    ws = full.working_set([cam], T, max_t, max_r)
+    max_shift, max_rotation = 0.2, 5.0
+    poses = [T] + [se3_noise(T, max_rotation * 0.5, max_shift * 0.5, np.random.default_rng(s)) for s in range(3)]
+    ws = full.working_set([cam], T, max_shift, max_rotation)
     exact = ws.render_full(cam, poses)[0]
-    lod2 = coarse_lod(full, cam, T, max_t, max_r, 2.0)
+    lod2 = coarse_lod(full, cam, T, max_shift, max_rotation, 2.0)
     assert lod2.n < 0.8 * ws.n
     p2 = [psnr(a, b) for a, b in zip(lod2.render_full(cam, poses)[0], exact)]
     assert min(p2) > 30.0, p2
-    assert coarse_lod(full, cam, T, max_t, max_r, 3.0).n < lod2.n
-    none = coarse_lod(full, cam, T, max_t, max_r, 0.01)
+    assert coarse_lod(full, cam, T, max_shift, max_rotation, 3.0).n < lod2.n
+    none = coarse_lod(full, cam, T, max_shift, max_rotation, 0.01)
     assert none.n == ws.n and np.all(none.source_index == ws.source_index)
     np.testing.assert_array_equal(none.render_full(cam, poses)[0], exact)
     with pytest.raises(ValueError, match="tau_px"):
-        coarse_lod(full, cam, T, max_t, max_r, 0.0)
+        coarse_lod(full, cam, T, max_shift, max_rotation, 0.0)
 
 
 def test_refine_with_coarse_lod_scores_fine_levels_on_the_exact_map():

@@ -17,22 +17,22 @@ from hgsloc_plugin.render.buffers import Pool
 from .conftest import random_scene, shared_path
 
 
-def region_poses(centre: hp.Pose, max_t: float, max_r: float, n: int, seed: int) -> list[hp.Pose]:
-    """n poses on the region's edge (shift exactly max_t and rotation exactly max_r, random directions), plus
+def region_poses(centre: hp.Pose, max_shift: float, max_rotation: float, n: int, seed: int) -> list[hp.Pose]:
+    """n poses on the region's edge (shift exactly max_shift and rotation exactly max_rotation, random directions), plus
     n inside it."""
     rng = np.random.default_rng(seed)
-    edge = [se3_noise(centre, max_r, max_t, rng) for _ in range(n)]
-    inside = [se3_noise(centre, rng.uniform(0, max_r), rng.uniform(0, max_t), rng) for _ in range(n)]
+    edge = [se3_noise(centre, max_rotation, max_shift, rng) for _ in range(n)]
+    inside = [se3_noise(centre, rng.uniform(0, max_rotation), rng.uniform(0, max_shift), rng) for _ in range(n)]
     return edge + inside
 
 
-def check_equal(scene, cams, centre, max_t, max_r, n=6, seed=0, background=(0.0, 0.0, 0.0)):
+def check_equal(scene, cams, centre, max_shift, max_rotation, n=6, seed=0, background=(0.0, 0.0, 0.0)):
     """Assert: every Gaussian the projection keeps for a region pose is in the working set, and images and
     window costs from the working set are bit-identical to the whole map's. Returns the kept fraction."""
     full = get_renderer(scene)
-    sub = full.working_set(cams, centre, max_t, max_r)
+    sub = full.working_set(cams, centre, max_shift, max_rotation)
     kept = sub.source_index
-    poses = region_poses(centre, max_t, max_r, n, seed)
+    poses = region_poses(centre, max_shift, max_rotation, n, seed)
     for cam in cams:
         seen = full.source_index[full.visible(cam, poses).any(axis=0)]
         missing = np.setdiff1d(seen, kept)

@@ -12,93 +12,43 @@ from ..costs import SEARCH_METRICS as METRICS
 
 @dataclass(frozen=True, kw_only=True)
 class RefineConfig:
-    """Settings of :class:`~hgsloc_plugin.HGSLocPlugin`.
+    """Settings of :class:`~hgsloc_plugin.HGSLocPlugin`. Lengths are in scene units, angles in degrees, image
+    sizes in pixels of the longer side. Why each default is what it is: ``benchmarks/defaults.md``.
 
     Attributes:
-        metric: heuristic h: "cs" (default; 1 - mean of SSIM's contrast-structure term over 11x11 Gaussian
-            windows: compares local structure, so it holds on real photographs against imperfect maps and under
-            exposure changes), "ssim" (1 - SSIM), "sad" (paper's L1 sum), "psnr" (100 - PSNR), "ncc"
-            (1 - zero-mean NCC) or "affine" (L1-scaled RMS residual after a per-channel gain/offset fit).
-            All run in the kernels (``kernels/blend.py``, ``kernels/window.py``).
-        neighbourhood: "lattice" (12 moves: +-dr about each camera axis, +-dt along each; proper rotations)
-            or "paper" (14 moves: +-d on each raw q, t component; quaternion normalised before rendering).
-        levels: explicit (rotation step in degrees, translation step in scene units) per level, coarse to fine;
-            empty = chosen from the scene depth and the camera (see ``level_pixels``).
-        level_pixels: image motion in scoring pixels of each automatic level's step. None: (4, 2, 1) when the
-            polish runs (it finishes below one pixel: measured in benchmarks/refine.py as accurate as the levels
-            down to 0.125 px + polish on the real snow photos and the room, with about half the renders), else
-            (4, 2, 1, 0.5, 0.25, 0.125).
-        max_expansions_per_level / max_expansions: expansion budgets (per level / whole query).
-        patience: consecutive expansions without a new best before a level stops (0 = never stop early).
-        pivot: lattice rotations turn about a point on the optical axis at the median scene depth (decouples
-            rotation from translation); False turns about the camera centre.
+        metric: the cost (``costs.METRICS``; lower is better): "cs" (default), "ssim", "sad", "psnr", "ncc" or
+            "affine".
+        neighbourhood: "lattice" (12 moves: +-step about and along each camera axis) or "paper" (14 moves: +-step
+            on each raw q, t component, as the official code).
+        levels: explicit (rotation step, translation step) per level, coarse to fine; empty: from ``level_pixels``.
+        level_pixels: image motion (pixels at the final scoring size) of each automatic level's step; None:
+            (4, 2, 1) with the polish, else (4, 2, 1, 0.5, 0.25, 0.125).
+        max_expansions_per_level / max_expansions: expansion budgets per level and per query.
+        patience: expansions without a new best before a level stops (0: never).
+        pivot: lattice rotations turn about a point on the optical axis at the median depth (else the centre).
         pattern_moves: also score the node that repeats the move which reached the expanded node.
-        heuristic_weight / depth_cost: f = depth_cost * g + heuristic_weight * h (paper: 1 and 1;
-            depth_cost 0 gives pure greedy best-first).
-        score_max_side: longer image side at which the fine levels score; the first ``coarse_levels``
-            levels (image pyramid) use ``coarse_scale`` times that, but never fewer than ``coarse_min_side``
-            pixels. Measured: reducing more than the first two levels costs accuracy and time.
-        max_shift / max_rotation_deg: trust region around the coarse pose: camera-centre shift in scene units
-            and rotation in degrees. None = ``trust_steps`` times the coarsest level's step (the expected error
-            of a coarse pose is a few coarse steps; with the default levels 8 x 4 px of image motion, e.g. about
-            23 % of the median depth and 13 deg at 160 px and a 60 deg field of view).
-        trust_steps: multiple of the coarsest step used for an automatic trust region.
-        prior_error / prior_error_deg: the coarse poses' typical (median) error, camera centre in scene units
-            and rotation in degrees, when known (a localizer's published accuracy, its inlier count:
-            ``adapters/confidence.py``); None (default): unknown. An accepted refined pose is then fused with
-            the prior (``refine/trust.py``, ``fuse_with_prior``: the posterior mean of the refined pose with its
-            covariance and the prior with a per-axis spread of 1.3x its median error); where the fusion's cost
-            is not below the prior's, the prior is kept (``rejected: "prior more precise"``). A real map's
-            minimum can lie centimetres from the true pose along a direction the image barely constrains (snow
-            query 0: 2.9 cm-equivalent) in a sharp, significant valley; no image cost tells that drift from a
-            correction, the prior's own accuracy can (``benchmarks/trust.py``: with a declared 1 cm / 0.5 deg,
-            Marepo's median, or ACE's inlier counts no snow, lego or room query ends worse). Only one given: the
-            prior pulls only in that part.
-        acceptance: "trust" (default): the search's pose is returned only when it passes the acceptance rule
-            of ``refine/trust.py`` (significant, sharp, inside the region, consistent across levels), else the
-            coarse pose with the reason; "cost": whenever its cost is lower (the paper's rule).
-        working_set: render each query's search from the Gaussians that some pose near the poses it scores
-            can see (``working_set.WorkingSet``: selected for a region of ``working_set_pixels`` around the
-            first poses scored, selected again when the search leaves it; conservative, so the images are
-            bit-identical to the whole map's) instead of the whole map per render; only for maps of at least
-            ``working_set_min`` Gaussians (``benchmarks/map_scale.py``, per query vs the whole map over three
-            runs: 0.97-1.05x at 49k, 0.87-1.20x at 195k, 1.05-1.06x at 488k, 1.04-1.37x at 975k, within this
-            machine's run-to-run noise below 1M; peak memory 0.42-0.79x; small maps gain little because the
-            projection rejects invisible Gaussians early).
-        working_set_pixels: the selection region's radius in image motion at the final scoring size (pixels:
-            rotation and camera shift at the median depth); a smaller region keeps fewer Gaussians and is left
-            more often.
-        coarse_lod_pixels: the coarse (pyramid) levels render a level of detail in which Gaussians of at most
-            this many pixels are merged per cell of this size (``lod.py``; approximate, built once per query;
-            only with a working set); None (default): the exact map at every level. Measured at 2 px
-            (``benchmarks/map_scale.py``, two runs): 0.90-1.37x per query from 195k to 1M Gaussians, and the
-            1M outcomes changed with it (better in one run, worse in the other), hence opt-in.
-        polish: after the search, a Levenberg-Marquardt polish on the cs cost from the kernels' analytic pose
-            derivatives (``refine/polish.py``) at ``polish_max_side``; keeps the search's pose unless the cost
-            falls. Only for the cs metric (the derivatives are those of cs); other metrics skip it.
-        gradient_first: try the gradient-only route first (Levenberg-Marquardt from the coarse pose, as with
-            ``search=False``) and run the lattice search + polish only when its pose fails the acceptance rule
-            (``RefineResult.route``, ``gradient_rejected``); a coarse pose refused only as insignificant in a
-            sharp, well-aligned minimum (``trust.settled``) is kept without a search. Measured
-            (``benchmarks/refine.py``, ``benchmarks/trust.py``): the same outcomes as search + polish on every
-            row of the real snow photos, lego, the room and the donut, with 2.0-3.0x fewer render-equivalents on
-            snow and 1.4-3.1x on the room over two runs (priors from the truth to 10 cm / 3 deg), 2.4-3.9x on
-            lego up to 3 cm (0.8x at 10 cm: a query the gradient cannot reach pays both routes, as do 30 cm /
-            10 deg priors), and 1.28-1.64x less time per query on the 1M-Gaussian room (``benchmarks/map_scale.py``,
-            two runs).
-            False: always search (the "search" preset).
-        polish_iterations: derivative passes at most per polish (one pass costs 2-10 renders of the search,
-            growing with the polish size). Far from the minimum the steps are short: on the donut a polish from
-            3.5 cm-eq took 13 passes to 0.05 cm-eq (8 stopped half way).
-        polish_max_side: longer image side of the polish (the query's own size when smaller). Measured on the
-            room's 320x240 queries: polishing at 320 px reaches 0.04 cm, at 200 px (a downsampled query) 0.26 cm,
-            no better than the search: precision needs the query's own pixels.
-        search: run the lattice search. False with ``polish`` = gradient only: Levenberg-Marquardt from the
-            coarse pose, coarse to fine over the scoring sizes (the "gradient" preset).
-        mask_alpha: ignore pixels whose rendered alpha is below this (0 = use all pixels).
-        background: RGB behind the Gaussians (the colour the map was trained with).
-        resize_query: resize a query whose size differs from the camera's instead of raising.
-        paper_step_q / paper_step_t: raw-component steps of the "paper" neighbourhood.
+        heuristic_weight / depth_cost: node priority ``depth_cost * g + heuristic_weight * h``.
+        score_max_side: the fine levels' scoring size; the first ``coarse_levels`` levels score at
+            ``coarse_scale`` times it, at least ``coarse_min_side``.
+        max_shift / max_rotation_deg: the trust region around the coarse pose; None: ``trust_steps`` coarsest
+            steps. A query's ``QueryPrior`` overrides them.
+        prior_error / prior_error_deg: the coarse poses' expected (median) error; None: unknown. Given, an
+            accepted pose is fused with its prior (``trust.fuse_with_prior``) and the prior is kept when the
+            fusion's cost is not lower ("prior more precise").
+        acceptance: "trust" (the rule of ``refine/trust.py``) or "cost" (any lower cost, the paper's rule).
+        working_set / working_set_min / working_set_pixels: render from the Gaussians seen near the poses scored
+            (``working_set.WorkingSet``; same images) on maps of at least ``working_set_min`` Gaussians, selected
+            for a region of ``working_set_pixels`` of image motion.
+        coarse_lod_pixels: the pyramid levels render a level of detail merging Gaussians of at most this many
+            pixels (``lod.py``; approximate; with a working set only); None: the exact map.
+        polish: Levenberg-Marquardt on the cs cost after the search (``refine/polish.py``), at
+            ``polish_max_side`` with at most ``polish_iterations`` derivative passes; cs metric only.
+        gradient_first: try the gradient route (the polish alone) first; search only when its pose is refused.
+        search: run the lattice search; False with ``polish``: gradient only.
+        mask_alpha: ignore pixels whose rendered alpha is below this.
+        background: RGB behind the Gaussians (the map's training background).
+        resize_query: resize a query whose size differs from its camera's instead of raising.
+        paper_step_q / paper_step_t: the "paper" neighbourhood's raw-component steps.
     """
 
     metric: str = "cs"

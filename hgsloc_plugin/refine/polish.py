@@ -11,13 +11,10 @@ region is not rendered: the damping grows until the step fits (or the polish sto
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
-lowers the cost the trial fails without a derivative pass. On a map whose Gauss-Newton model overestimates the
-curvature (the 1M-Gaussian densified room: 16 passes of 0.03-0.09 px, each lowering the cost by 0.05-0.5 %) the
-longer multiples cover in one pass what took two to four. When the longest is the best, the search goes on
+lowers the cost the trial fails without a derivative pass. When the longest is the best, the search goes on
 (``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the trust region) while the
 cost falls, and the convergence test scales the next step by the multiple the last one needed (a Gauss-Newton
-step 40x too short is not convergence). On the 1M room this took the gradient route from 19-20 passes ending
-off the minimum ("flat valley") to 10-17 converged ones.
+step far too short is not convergence; ``benchmarks/defaults.md``).
 """
 
 from __future__ import annotations
@@ -42,9 +39,7 @@ LINE_SEARCH = (1.0, 2.0, 4.0)  # multiples of the step scored with the cost alon
 EXTEND = (2.0, 4.0)  # when the longest multiple is the best, the next ones (x its length), one batch at a time
 MAX_MULTIPLE = 64.0
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
-# ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on.
-# Measured (benchmarks/refine.py, gradient first, before the line search extended): 1.3-1.6x fewer
-# render-equivalents on snow, equal errors.
+# ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
 STAGE_STEP_PX = 0.25
 
 

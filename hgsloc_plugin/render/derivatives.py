@@ -40,8 +40,7 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     n = len(part)
     projection_grad_kernel(r.config)(gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n,
                                      rec.ntiles, drec.dpacked)
-    # one task per pixel on every backend: a tile-parallel twin measured slower on the CPU (the derivative
-    # arithmetic, not the rejected pairs, dominates; benchmarks/render.py)
+    # one task per pixel on every backend (a tile-parallel twin was slower on the CPU: benchmarks/defaults.md)
     tx, _ = ws.tiles
     blend_grad_kernel(r.config)(rec.packed, drec.dpacked, ws.tile_start, r.pool.lists.isect, ws.isect_base,
                                 ws.background, tx, n, g.rgb, g.alpha, g.drgb)

@@ -106,3 +106,6 @@ class WorkingSet:
 
     def render_full(self, camera: Camera, poses: list[Pose], *args, **kwargs):
         return self.covering(poses).render_full(camera, poses, *args, **kwargs)
+
+    def working_set(self, cameras: list[Camera], pose: Pose, max_shift: float, max_rotation_deg: float):
+        return self.full.working_set(cameras, pose, max_shift, max_rotation_deg)

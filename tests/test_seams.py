@@ -1,0 +1,99 @@
+"""The seams a contributor plugs into: the renderer protocol, the per-query settings, the registries."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.costs import METRICS
+from hgsloc_plugin.render import RendererLike, get_renderer
+from hgsloc_plugin.working_set import WorkingSet
+
+from .conftest import random_scene, room_query
+
+
+class CountingRenderer:
+    """A second 'backend': forwards to a Renderer and counts the calls the refinement makes."""
+
+    def __init__(self, inner):
+        self.inner, self.calls = inner, {}
+
+    def __getattr__(self, name):
+        attr = getattr(self.inner, name)
+        if callable(attr):
+            def counted(*a, **k):
+                self.calls[name] = self.calls.get(name, 0) + 1
+                return attr(*a, **k)
+            return counted
+        return attr
+
+
+def test_renderer_and_working_set_satisfy_the_protocol():
+    r = get_renderer(random_scene(n=50, seed=3))
+    assert isinstance(r, RendererLike)
+    cam = hp.Camera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    assert isinstance(WorkingSet(r, [cam], 0.1, 1.0), RendererLike)
+    assert not isinstance(object(), RendererLike)
+
+
+def test_a_refiner_runs_on_any_renderer_like_object():
+    cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
+    plain = hp.HGSLocPlugin(scene).refine(img, cam, prior)
+    counting = CountingRenderer(get_renderer(scene))
+    other = hp.HGSLocPlugin(scene, renderer=counting).refine(img, cam, prior)
+    assert np.array_equal(other.pose.as_array(), plain.pose.as_array()) and other.renders == plain.renders
+    assert counting.calls.get("pose_gradient", 0) > 0 and counting.calls.get("window_cost", 0) > 0
+
+
+def test_query_prior_resolves_absolute_before_depth_relative_and_defers_to_the_config():
+    p = hp.QueryPrior(max_shift_depth=0.1, prior_error=0.02, prior_error_depth=0.5)
+    assert p.shift_bound(4.0) == pytest.approx(0.4) and p.centre_error(4.0) == 0.02
+    assert hp.QueryPrior().shift_bound(4.0) is None
+    d = p.deferring_to(hp.RefineConfig(max_shift=0.3))
+    assert d.max_shift_depth is None and d.prior_error == 0.02 and d.prior_error_depth == 0.5
+    assert p.deferring_to(hp.RefineConfig()) == p
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="prior_error_deg must be a positive number"):
+            hp.QueryPrior(prior_error_deg=bad)
+    with pytest.raises(ValueError, match=r"query 3: unknown keys \['max_shif'\]"):
+        hp.QueryPrior.from_mapping({"max_shif": 0.1}, "query 3")
+
+
+def test_refine_takes_the_prior_as_one_value_or_as_keywords_not_both():
+    cam = hp.Camera(64, 48, 56.0, 56.0, 32.0, 24.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=1, noise_deg=0.5, noise_shift=0.02, noise_seed=1)
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("fast"))
+    a = refiner.refine(img, cam, prior, prior=hp.QueryPrior(max_shift=0.05, max_rotation_deg=2.0))
+    b = refiner.refine(img, cam, prior, max_shift=0.05, max_rotation_deg=2.0)
+    assert np.array_equal(a.pose.as_array(), b.pose.as_array()) and a.max_shift == b.max_shift == 0.05
+    with pytest.raises(TypeError, match="not both"):
+        refiner.refine(img, cam, prior, prior=hp.QueryPrior(max_shift=0.05), max_rotation_deg=2.0)
+    with pytest.raises(TypeError, match="unexpected keywords"):
+        refiner.refine(img, cam, prior, max_shif=0.05)
+
+
+def test_metric_registry_drives_the_config():
+    assert set(hp.RefineConfig.__dataclass_fields__) and all(m.name == k for k, m in METRICS.items())
+    assert hp.RefineConfig(metric="ncc").polishes is False and hp.RefineConfig().polishes is True
+    with pytest.raises(ValueError, match="metric must be one of"):
+        hp.RefineConfig(metric="ssd")  # a render_cost metric, not a search heuristic
+    with pytest.raises(ValueError, match="search=False"):
+        hp.RefineConfig(search=False, metric="ssim")
+
+
+def test_dialect_registry_reads_every_registered_format(tmp_path):
+    from hgsloc_plugin.adapters import read_poses
+    from hgsloc_plugin.adapters.dialects import DIALECTS
+
+    line = "a.png 1 0 0 0 0.1 0.2 0.3"
+    (tmp_path / "h.txt").write_text(line + "\n")
+    (tmp_path / "a.txt").write_text(line + " 1.0 0.01 3000\n")
+    assert read_poses(tmp_path / "h.txt").dialect == "hloc" and read_poses(tmp_path / "a.txt").dialect == "ace"
+    assert read_poses(tmp_path / "h.txt", "generic").dialect == "generic"
+    assert {"hloc", "ace", "marepo", "pgt", "generic", "cambridge", "cameras_json"} <= set(DIALECTS)
+    with pytest.raises(ValueError, match="unknown dialect 'nope'"):
+        read_poses(tmp_path / "h.txt", "nope")

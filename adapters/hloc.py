@@ -6,8 +6,9 @@ The refinement step that runs on them is :mod:`hgsloc_plugin.hloc_step` (``pytho
 from __future__ import annotations
 
 from .dialects import read_poses as _read
+from .dialects import write_poses
 from .intrinsics import from_query_list, parse_query_list
-from .posefile import PoseFile, write_poses
+from .posefile import PoseFile
 
 __all__ = ["from_query_list", "parse_query_list", "read_poses", "write_poses"]
 

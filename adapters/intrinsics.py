@@ -88,7 +88,12 @@ def from_cameras_json(path) -> IntrinsicsFn:
 
 
 def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
-    """Cameras from HLoc's query list (or a trainer's ``cameras.json``), rescaled to the image's actual size."""
+    """Cameras from HLoc's query list (or a NeRF ``transforms.json``, or a trainer's ``cameras.json``), rescaled to
+    the image's actual size."""
+    from .nerf import is_transforms_json, transforms_intrinsics
+
+    if is_transforms_json(path):
+        return transforms_intrinsics(path, allow_distortion=allow_distortion)
     if str(path).lower().endswith(".json"):
         return from_cameras_json(path)
     return _lookup(parse_query_list(path, allow_distortion=allow_distortion), path, "query")

@@ -7,25 +7,30 @@ from pathlib import Path
 
 _SEVEN = re.compile(r"^(seq-\d+)[/-](frame-\d+\..*)$")
 _CAMBRIDGE = re.compile(r"^(seq\d+)[/_](frame\d+\..*)$")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+
+def _strip_extension(n: str) -> str:
+    return n[: -len(n.rsplit(".", 1)[1]) - 1] if n.lower().endswith(IMAGE_EXTENSIONS) else n
 
 
 def canonical_name(name: str) -> str:
-    """A key equal for every style of one frame's name.
+    """A key equal for every style of one frame's name, without its image extension.
 
     7-Scenes ``seq-01/frame-000000.color.png`` and ``seq-01-frame-000000.color.png`` -> the dashed form;
     Cambridge ``seq2/frame00001.png`` and ``seq2_frame00001.png`` -> the underscore form; 12-Scenes drops
-    ``data/``.
+    ``data/``, NeRF ``transforms.json`` ``./`` and ``images/`` (``images/0001.jpg`` and ``0001.png`` match).
     """
-    n = name.replace("\\", "/")
-    if n.startswith("data/"):
-        n = n[5:]
+    n = name.replace("\\", "/").removeprefix("./")
+    for prefix in ("data/", "images/"):
+        n = n.removeprefix(prefix)
     m = _SEVEN.match(n)
     if m:
-        return f"{m.group(1)}-{m.group(2)}"
+        return _strip_extension(f"{m.group(1)}-{m.group(2)}")
     m = _CAMBRIDGE.match(n)
     if m:
-        return f"{m.group(1)}_{m.group(2)}"
-    return n
+        return _strip_extension(f"{m.group(1)}_{m.group(2)}")
+    return _strip_extension(n)
 
 
 def name_variants(name: str) -> list[str]:
@@ -40,6 +45,8 @@ def name_variants(name: str) -> list[str]:
         out.append("data/" + n)
     if n.startswith("data/"):
         out.append(n[5:])
+    stems = [_strip_extension(v) for v in out]  # re-encoded frames (transforms.json's .jpg, undistorted .png)
+    out += [s + ext for s in stems for ext in IMAGE_EXTENSIONS]
     return list(dict.fromkeys(out))
 
 

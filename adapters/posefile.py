@@ -121,12 +121,16 @@ def _has_tensor_tail(tokens: list[str]) -> bool:
     return len(tokens) > 8 and _record_numbers(tokens) and not _is_float(tokens[8])
 
 
+def _stray_line(path: Path, line_no: int, line: str) -> ValueError:
+    return ValueError(f"{path}:{line_no}: neither a pose record nor a printed tensor: {line.strip()[:60]!r}")
+
+
 def detect_dialect(path: Path, lines: list[str]) -> str:
-    """Guess the dialect from the token counts of the lines.
+    """The dialect, decided by the record lines' token counts.
 
     Raw Marepo output (records followed by the reprs of the batch's error tensors, wrapped over several lines;
-    CONVENTIONS §2) is recognised by its tensor tails and wrapped lines; every record of such a file has 8
-    pose tokens.
+    CONVENTIONS §2) is recognised by its tensor tails and tensor lines; every record of such a file has 8 pose
+    tokens. A line that is neither a record nor a printed tensor is an error naming it.
     """
     if lines and lines[0].strip().startswith(CAMBRIDGE_HEADER):
         return "cambridge"
@@ -143,8 +147,10 @@ def detect_dialect(path: Path, lines: list[str]) -> str:
             raise _damaged_record(path, i, tok)  # a truncated line is a lost query, not a Marepo tensor
         elif _looks_like_record(tok) or (len(tok) in (8, 9, 11) and tok[0].lower().endswith(IMAGE_EXT)):
             counts.add(len(tok))
-        else:
+        elif _is_tensor_fragment(ln):
             junk = True
+        else:
+            raise _stray_line(path, i, ln)
     if junk:
         if counts == {8}:
             return "marepo"
@@ -183,7 +189,7 @@ def read_text_poses(path, dialect: str = "auto") -> PoseFile:
     if dialect not in DIALECTS:
         raise ValueError(f"unknown dialect {dialect!r}; choose from {DIALECTS}")
     width = COLUMNS[dialect]
-    records, seen, strays = [], {}, []
+    records, seen, unusable = [], {}, []
     for i, ln in enumerate(lines, 1):
         tok = ln.split()
         if not tok or tok[0].startswith("#") or (dialect == "cambridge" and i <= 3):
@@ -193,7 +199,7 @@ def read_text_poses(path, dialect: str = "auto") -> PoseFile:
                 if tok[0].lower().endswith(IMAGE_EXT):
                     raise _damaged_record(path, i, tok)
                 if not _is_tensor_fragment(ln):
-                    strays.append(i)
+                    raise _stray_line(path, i, ln)
                 continue  # wrapped error tensors: not a record (CONVENTIONS §2, robust parse)
         else:
             if len(tok) != width:
@@ -206,16 +212,14 @@ def read_text_poses(path, dialect: str = "auto") -> PoseFile:
         seen[tok[0]] = i
         pose = _make_pose(tok, dialect)
         if pose is None:
-            logger.warning("%s:%d: unusable pose for %s (non-finite value or zero quaternion): kept as a failed "
-                           "estimate", path, i, tok[0])
+            unusable.append((i, tok[0]))
         records.append(Record(i, ln, tok[0], pose, tok))
     if not records:
         raise ValueError(f"{path}: no pose records found")
-    for i in strays[:3]:  # skipped per the robust rule, but not what Marepo spills: say so
-        logger.warning("%s:%d: neither a pose record nor a printed tensor, skipped (read as Marepo output): %r",
-                       path, i, lines[i - 1].strip()[:60])
-    if len(strays) > 3:
-        logger.warning("%s: %d more such lines skipped", path, len(strays) - 3)
+    if unusable:  # one warning for the cause, however many lines
+        i, name = unusable[0]
+        logger.warning("%s:%d: %d unusable pose%s (non-finite value or zero quaternion; first: %s) kept as failed "
+                       "estimates", path, i, len(unusable), "" if len(unusable) == 1 else "s", name)
     return PoseFile(path, dialect, lines, records, final_newline, bom)
 
 
@@ -225,7 +229,7 @@ def format_pose_tokens(pose: Pose, dialect: str = "hloc") -> list[str]:
     return [repr(float(v)) for v in vals]
 
 
-def write_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
+def write_text_poses(path, poses: Mapping[str, Pose], like: PoseFile) -> Path:
     """Write ``like``'s file with the poses in ``poses`` replaced; everything else is copied verbatim.
 
     The columns, line order, name strings and extra columns (ACE errors, pGT focal) stay as in the input; a

@@ -71,6 +71,7 @@ class CheckReport:
         psnr / ssim: [n] of the poses as given (for humans).
         verdict: "ok", "convention error" or "disagree".
         reading: the best-fitting reading; hint: how to fix the input (empty when ok).
+        unreadable: sampled queries whose image could not be read -> why (the check then fails).
     """
 
     names: list[str]
@@ -82,18 +83,33 @@ class CheckReport:
     hint: str
     figures: list[str] = field(default_factory=list)
     aligned: dict[str, list[float]] = field(default_factory=dict)
+    unreadable: dict[str, str] = field(default_factory=dict)
 
     def median(self, reading: str = "as given") -> float:
         """Median cost of a reading: after the alignment when it was aligned, else as read."""
         return float(np.median(_effective(self.costs, self.aligned)[reading]))
 
     @property
-    def ok(self) -> bool:
+    def agrees(self) -> bool:
+        """The poses and the map agree (over the queries that could be read)."""
         return self.verdict == "ok"
 
+    @property
+    def ok(self) -> bool:
+        """They agree and every sampled query could be read."""
+        return self.agrees and not self.unreadable
+
     def message(self) -> str:
+        text = self._agreement()
+        if self.unreadable:
+            name, why = next(iter(self.unreadable.items()))
+            text += (f"; {len(self.unreadable)} sampled quer{'y' if len(self.unreadable) == 1 else 'ies'} could not "
+                     f"be read (first: {name}: {why})")
+        return text
+
+    def _agreement(self) -> str:
         given = self.median()
-        if self.ok:
+        if self.agrees:
             how = ""
             if "as given" in self.aligned:
                 raw = float(np.median(self.costs["as given"]))
@@ -114,7 +130,8 @@ class CheckReport:
                 "queries": {n: {"psnr": self.psnr[k], "ssim": self.ssim[k],
                                 **{h: c[k] for h, c in self.costs.items()}} for k, n in enumerate(self.names)},
                 "median": {h: self.median(h) for h in self.costs},
-                "aligned": {h: dict(zip(self.names, c)) for h, c in self.aligned.items()}, "figures": self.figures}
+                "aligned": {h: dict(zip(self.names, c)) for h, c in self.aligned.items()}, "figures": self.figures,
+                "unreadable": self.unreadable}
 
 
 def _effective(costs: dict[str, list[float]], aligned: dict[str, list[float]]) -> dict[str, list[float]]:
@@ -158,12 +175,13 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
     renderer = get_renderer(scene)
     costs: dict[str, list[float]] = {h: [] for h in HYPOTHESES}
     psnr, ssim, figs = [], [], []
-    used, data = [], []
+    used, data, unreadable = [], [], {}
     for name in names:
         try:
             img = load_image(image_of(name), name=name, background=background)
         except (FileNotFoundError, OSError, ValueError, KeyError) as exc:  # refine records it per query
-            logger.warning("check: skipping %s: %s", name, exc)
+            logger.warning("check: cannot read %s: %s", name, exc)
+            unreadable[name] = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             continue
         used.append(name)
         full = intrinsics(name, img.shape[1], img.shape[0])
@@ -185,7 +203,8 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
             save_png(np.concatenate([q, rgb[0]], axis=1), path)
             figs.append(str(path))
     if not used:
-        raise ValueError("no query image of the sample could be read")
+        name, why = next(iter(unreadable.items()))
+        raise ValueError(f"no query image of the sample could be read (first: {name}: {why})")
     names = used
     best, second, clear = _verdict(costs)
     aligned: dict[str, list[float]] = {}
@@ -202,7 +221,7 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
         verdict, reading, hint = "convention error", best, HYPOTHESES[best][1]
     else:
         verdict, reading, hint = "disagree", best, ""
-    return CheckReport(names, costs, psnr, ssim, verdict, reading, hint, figs, aligned)
+    return CheckReport(names, costs, psnr, ssim, verdict, reading, hint, figs, aligned, unreadable)
 
 
 def _aligned_costs(scene: GaussianScene, poses: Mapping[str, Pose], names: list[str], data: list, reading,

@@ -27,15 +27,30 @@ def unmatched(estimates: Mapping[str, object], gt: Mapping[str, object]) -> tupl
     return ([n for k, n in gt_keys.items() if k not in est_keys], [n for k, n in est_keys.items() if k not in gt_keys])
 
 
-def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, scale_to_m: float = 1.0) -> dict:
+def units_note(scale_to_m: float | None) -> str:
+    """What the evaluation's "cm" mean: metres per scene unit given, or the scene units taken as metres."""
+    if scale_to_m is None:
+        return ("cm = scene units / 100: the map is taken as metric (give --scale S, metres per scene unit, for an "
+                "SfM map of arbitrary scale)")
+    return f"cm with 1 scene unit = {scale_to_m:g} m"
+
+
+def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, scale_to_m: float | None = None) -> dict:
     """Errors of ``estimates`` against ``gt``; names are matched across styles (canonical keys).
 
-    Missing queries (and failed priors) count as failures: e_t = inf, e_R = 180.
+    Missing queries (and failed priors) count as failures: e_t = inf, e_R = 180. ``scale_to_m``: metres per scene
+    unit (None: the scene units are taken as metres, as in 7-Scenes and Cambridge).
 
     Returns:
         dict with n, missing, median_translation_cm, median_rotation_deg, recall {"5cm5deg", "2cm2deg",
-        "1cm1deg"} as fractions, and per-query errors ``errors`` {name: [t_cm, r_deg]}.
+        "1cm1deg"} as fractions, per-query errors ``errors`` {name: [t_cm, r_deg]}, and ``units``
+        {"scale_to_m", "assumed_metric", "note"}.
     """
+    if scale_to_m is not None and not (math.isfinite(scale_to_m) and scale_to_m > 0):
+        raise ValueError(f"scale_to_m must be a positive number of metres per scene unit, got {scale_to_m}")
+    units = {"scale_to_m": 1.0 if scale_to_m is None else float(scale_to_m), "assumed_metric": scale_to_m is None,
+             "note": units_note(scale_to_m)}
+    scale = units["scale_to_m"]
     from .adapters.names import canonical_name
 
     est_by_key = {canonical_name(k): v for k, v in estimates.items()}
@@ -46,7 +61,7 @@ def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, sc
         if key not in est_by_key:
             missing += 1
         t, r = pose_errors(est_by_key.get(key), g)
-        t *= scale_to_m
+        t *= scale
         et.append(t)
         er.append(r)
         per[name] = [t * 100, r]
@@ -60,6 +75,7 @@ def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, sc
         "median_rotation_deg": float(np.median(er)) if n else math.nan,
         "recall": recall,
         "errors": per,
+        "units": units,
     }
 
 

@@ -1,4 +1,5 @@
-"""Safe output: atomic writes (temporary file + rename) and strict JSON (non-finite numbers as null)."""
+"""Safe output, for every file the package writes: atomic writes (temporary file + rename) with the mode the
+process's umask gives, and strict JSON (non-finite numbers as null)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,16 @@ import tempfile
 from pathlib import Path
 
 
+def current_umask() -> int:
+    """The process's file-mode creation mask (read without changing it for long)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Write ``payload`` to ``path`` through a temporary file in the same folder and a rename."""
+    """Write ``payload`` to ``path`` through a temporary file in the same folder and a rename; the file's mode is
+    what a plain ``open`` would give (0o666 less the umask: 0644 under umask 022), not the temporary file's 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -19,6 +28,7 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
             f.write(payload)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

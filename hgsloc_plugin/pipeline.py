@@ -14,9 +14,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .adapters.confidence import inlier_trust, record_inliers
-from .adapters.dialects import read_poses
+from .adapters.dialects import read_poses, write_poses
 from .adapters.names import resolve_image
-from .adapters.posefile import PoseFile, write_poses
+from .adapters.posefile import PoseFile
 from .batch import Query, run_batch
 from .camera import Camera
 from .fileio import write_json
@@ -39,6 +39,7 @@ class _Run:
 
     def __init__(self, pf: PoseFile, output: Path, report: dict, refined: dict[str, Pose]):
         self.pf, self.output, self.report, self.refined = pf, output, report, refined
+        self.this_run: set[str] = set()  # the queries recorded by this run (not an earlier, resumed one)
 
     def record(self, name: str, res: RefineResult | None = None, error: str | None = None) -> None:
         if res is not None and res.error:
@@ -52,21 +53,30 @@ class _Run:
             if res.accepted:
                 self.refined[name] = res.pose
         self.report["queries"][name] = entry
+        self.this_run.add(name)
 
     def save(self) -> None:
         write_poses(self.output, self.refined, like=self.pf)
-        q = self.report["queries"].values()
-        self.report["totals"] = {
-            "queries": len(self.report["queries"]), "accepted": sum(1 for v in q if v.get("accepted")),
-            "fused": sum(1 for v in q if v.get("accepted") and v.get("fused")),
-            "failed": sum(1 for v in q if v.get("error")), "rejected": rejected_counts(q),
-            "median_confidence": median_confidence(q),
-            "median_sigma_t": median_accepted(q, "sigma_t"), "median_sigma_r_deg": median_accepted(q, "sigma_r_deg"),
-            "renders": sum(v.get("renders", 0) for v in q),
-            "searched": sum(1 for v in q if v.get("route") == "search"),
-            "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
-        }
+        queries = self.report["queries"]
+        self.report["totals"] = totals(queries.values())
+        self.report["this_run"] = totals(v for k, v in queries.items() if k in self.this_run)
         write_json(report_path(self.output), self.report)
+
+
+def totals(entries) -> dict:
+    """Counts and medians over report entries: queries, accepted, fused, failed, rejected per reason, median
+    confidence and sigmas of the accepted ones, renders, queries that searched, seconds."""
+    q = list(entries)
+    return {
+        "queries": len(q), "accepted": sum(1 for v in q if v.get("accepted")),
+        "fused": sum(1 for v in q if v.get("accepted") and v.get("fused")),
+        "failed": sum(1 for v in q if v.get("error")), "rejected": rejected_counts(q),
+        "median_confidence": median_confidence(q),
+        "median_sigma_t": median_accepted(q, "sigma_t"), "median_sigma_r_deg": median_accepted(q, "sigma_r_deg"),
+        "renders": sum(v.get("renders", 0) for v in q),
+        "searched": sum(1 for v in q if v.get("route") == "search"),
+        "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
+    }
 
 
 def rejected_counts(entries) -> dict[str, int]:
@@ -90,10 +100,12 @@ def median_accepted(entries, key: str) -> float | None:
     return round(c[len(c) // 2], 6) if c else None
 
 
-def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose]]:
-    """Report entries and refined poses of an earlier run of the same output (empty if none)."""
+def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose], int]:
+    """Report entries and refined poses of an earlier run of the same output (empty if none), and how many of its
+    queries failed (they are retried)."""
     done: dict[str, dict] = {}
     refined: dict[str, Pose] = {}
+    failed = 0
     rep_path = report_path(output)
     if output.exists() and rep_path.exists():
         old = json.loads(rep_path.read_text())
@@ -105,9 +117,8 @@ def _resume(pf: PoseFile, output: Path) -> tuple[dict[str, dict], dict[str, Pose
                 done[name] = q
                 if prev[name] is not None:
                     refined[name] = prev[name]
-        logger.info("resuming: %d queries already done, %d failed ones retried", len(done),
-                    sum(1 for q in old.get("queries", {}).values() if q.get("error")))
-    return done, refined
+        failed = sum(1 for q in old.get("queries", {}).values() if q.get("error"))
+    return done, refined, failed
 
 
 def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[str, int, int], Camera],
@@ -176,14 +187,20 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         raise ValueError(f"{output}: refusing to overwrite the input pose file")
     pf = pf if pf is not None else read_poses(poses, dialect)
     refiner = scene if isinstance(scene, HGSLocPlugin) else HGSLocPlugin(scene, config)
-    done, refined = _resume(pf, output)
+    done, refined, failed_before = _resume(pf, output)
+    names = list(pf)[: limit if limit is not None else None]
     report = {
         "input": str(poses), "output": str(output), "dialect": pf.dialect,
         "scene": str(getattr(refiner.scene, "source", None)), "gt_variant": gt_variant,
         "config": refiner.config.to_dict(), "settings": settings or {}, "queries": done,
+        "resumed": {"done": sum(1 for n in names if n in done), "of": len(names), "retried": failed_before}
+        if done or failed_before else None,
     }
+    if report["resumed"]:
+        r = report["resumed"]
+        logger.warning("resuming: %d of %d queries already done in %s, retrying %d failed", r["done"], r["of"],
+                       output, r["retried"])
     run = _Run(pf, output, report, refined)
-    names = list(pf)[: limit if limit is not None else None]
     queries = _queries(run, [n for n in names if n not in done], images, intrinsics,
                        _region_of(pf, refiner.config) if inlier_region else lambda _: QueryPrior())
     count = 0

@@ -1,12 +1,14 @@
-"""Figures: the paper's diagonal-split comparison, difference heat maps, and error / cost plots (PNG)."""
+"""Figures (PNG, written atomically): the diagonal-split comparison with heat maps, error and cost plots."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
 from .camera import Camera
+from .fileio import atomic_write_bytes
 from .pose import Pose
 from .render import render
 from .scene import GaussianScene
@@ -23,37 +25,42 @@ def diagonal_split(rendering: np.ndarray, query: np.ndarray) -> np.ndarray:
     return np.clip(out, 0, 1)
 
 
-def heat_map(rendering: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Absolute difference averaged over RGB, as an RGB heat map [H, W, 3] (matplotlib 'inferno')."""
-    from matplotlib import colormaps
-
-    d = np.abs(rendering.astype(np.float64) - query).mean(-1)
-    return colormaps["inferno"](np.clip(d / 0.5, 0, 1))[..., :3]
-
-
 def save_png(img: np.ndarray, path) -> Path:
+    """Write an image [H, W, 3] float in [0, 1] as an 8-bit PNG (atomically, with the umask's mode)."""
     from PIL import Image
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).save(path)
-    return path
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(img, 0, 1) * 255).round().astype(np.uint8)).save(buf, format="PNG")
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
+
+
+#: the heat map's colour scale: mean |rendering - query| over RGB, 0 (black) to this (yellow)
+HEAT_MAX = 0.5
 
 
 def comparison_figure(scene: GaussianScene, camera: Camera, query: np.ndarray, coarse: Pose, refined: Pose,
                       path, background=(0.0, 0.0, 0.0), max_side: int = 320) -> Path:
-    """One PNG: [coarse split | refined split] over [coarse heat map | refined heat map].
-
-    Rendering and query are split along the diagonal, so misalignment shows at the seam.
-    """
+    """One PNG of four titled panels: the coarse and the refined pose's rendering split with the query along the
+    diagonal (rendering top left, query bottom right: misalignment shows at the seam), and each one's heat map of
+    the mean absolute difference to the query over RGB (0 to ``HEAT_MAX``, with a colour bar)."""
     from .image import resize_image
 
     cam = camera.with_max_side(max_side)
     q = resize_image(query.astype(np.float32), cam.width, cam.height)
     r0, r1 = render(scene, cam, [coarse, refined], background=background)
-    top = np.concatenate([diagonal_split(r0, q), np.ones((cam.height, 4, 3)), diagonal_split(r1, q)], 1)
-    bot = np.concatenate([heat_map(r0, q), np.ones((cam.height, 4, 3)), heat_map(r1, q)], 1)
-    return save_png(np.concatenate([top, np.ones((4, top.shape[1], 3)), bot], 0), path)
+    plt = _pyplot()
+    fig, ax = plt.subplots(2, 2, figsize=(2 * cam.width / 80 + 1.2, 2 * cam.height / 80 + 0.9))
+    for col, (r, what) in enumerate(((r0, "coarse"), (r1, "refined"))):
+        ax[0, col].imshow(diagonal_split(r, q))
+        ax[0, col].set_title(f"{what} pose: rendering (top left) | query", fontsize=8)
+        d = np.abs(r.astype(np.float64) - q).mean(-1)
+        im = ax[1, col].imshow(d, cmap="inferno", vmin=0.0, vmax=HEAT_MAX)
+        ax[1, col].set_title(f"{what}: |rendering - query|, mean {d.mean():.3f}", fontsize=8)
+    for a in ax.ravel():
+        a.set_axis_off()
+    fig.colorbar(im, ax=ax[1, :].tolist(), shrink=0.8, label="mean |difference| over RGB")
+    return _save_figure(plt, fig, path, tight=False)
 
 
 def _pyplot():
@@ -65,42 +72,67 @@ def _pyplot():
     return plt
 
 
-def _save_figure(plt, fig, path) -> Path:
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+def _save_figure(plt, fig, path, tight: bool = True) -> Path:
+    if tight:
+        fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
-    return path
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
 
 
-def plot_errors(before_t, after_t, before_r, after_r, path) -> Path:
-    """Scatter of per-query error before vs after (translation cm, rotation deg) and cumulative curves."""
+def plot_errors(before_t, after_t, before_r, after_r, path, unit: str = "cm") -> Path:
+    """Scatter of per-query error before vs after (translation in ``unit``, rotation deg) and cumulative curves."""
     plt = _pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(13, 4))
-    for a, b, lab in ((before_t, after_t, "translation error (cm)"), (before_r, after_r, "rotation error (deg)")):
-        k = 0 if "cm" in lab else 1
+    for k, (a, b, lab) in enumerate(((before_t, after_t, f"translation error ({unit})"),
+                                     (before_r, after_r, "rotation error (deg)"))):
         ax[k].scatter(a, b, s=12)
         m = max(np.max(a), np.max(b), 1e-6)
-        ax[k].plot([0, m], [0, m], "k--", lw=0.8)
+        ax[k].plot([0, m], [0, m], "k--", lw=0.8, label="unchanged")
         ax[k].set_xlabel("coarse " + lab)
         ax[k].set_ylabel("refined " + lab)
+        ax[k].set_title(f"{lab.split(' (')[0]} per query (below the line: better)", fontsize=9)
+        ax[k].legend(fontsize=8)
     for v, lab in ((before_t, "coarse"), (after_t, "refined")):
-        s = np.sort(v)
-        ax[2].plot(s, np.arange(1, len(s) + 1) / len(s), label=lab)
-    ax[2].set_xlabel("translation error (cm)")
+        srt = np.sort(v)
+        ax[2].plot(srt, np.arange(1, len(srt) + 1) / len(srt), label=lab)
+    ax[2].set_xlabel(f"translation error ({unit})")
     ax[2].set_ylabel("fraction of queries")
+    ax[2].set_title("cumulative translation error", fontsize=9)
     ax[2].legend()
     return _save_figure(plt, fig, path)
 
 
-def plot_costs(histories: list[list[float]], path) -> Path:
-    """Best cost after each expansion, one line per query (normalised by its first value)."""
+def cost_trace(entry: dict) -> list[tuple[str, float, float]]:
+    """The cost along one query's refinement, from its report entry: (stage, cost before, cost after) for each
+    search level (its start is the previous level's end) and each polish stage, labelled by scoring size;
+    [] when nothing ran."""
+    out, prev = [], entry.get("cost_initial")
+    for i, lv in enumerate(entry.get("levels") or []):
+        out.append((f"level {i + 1}\n{lv['width']}x{lv['height']}", prev, lv["best_cost"]))
+        prev = lv["best_cost"]
+    for st in entry.get("polish") or []:
+        out.append((f"polish\n{st['width']}x{st['height']}", st["cost_start"], st["cost"]))
+    return [(k, a if a is not None else b, b) for k, a, b in out if b is not None]
+
+
+def plot_costs(entries: list[dict], path) -> Path | None:
+    """The cost (lower is better) before and after each stage of each query's refinement (:func:`cost_trace`),
+    one colour per query; nothing is written (None) when no query has a stage."""
+    traces = [t for t in (cost_trace(e) for e in entries) if t]
+    if not traces:
+        return None
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for h in histories:
-        if h:
-            ax.plot(np.asarray(h) / max(h[0], 1e-12), lw=0.8)
-    ax.set_xlabel("expansion")
-    ax.set_ylabel("best cost / first cost")
+    stages = list(dict.fromkeys(k for t in traces for k, _, _ in t))
+    fig, ax = plt.subplots(figsize=(1.6 * len(stages) + 2.5, 4))
+    for q, t in enumerate(traces):
+        colour = f"C{q % 10}"
+        for k, before, after in t:
+            x = stages.index(k)
+            ax.plot([x - 0.3, x + 0.3], [before, after], color=colour, marker=".", lw=1.0)
+    ax.set_xticks(range(len(stages)), stages, fontsize=8)
+    ax.set_ylabel("cost (lower is better)")
+    ax.set_title("cost before -> after each stage, one colour per query", fontsize=9)
     return _save_figure(plt, fig, path)

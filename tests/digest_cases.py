@@ -118,7 +118,7 @@ def _pose_file():
         for p in q.get("polish", []):
             p.pop("seconds", None)
     rep["totals"].pop("seconds")
-    for k in ("input", "output"):
+    for k in ("input", "output", "scene"):  # paths of this checkout
         rep.pop(k)
     return [], [text, rep]
 

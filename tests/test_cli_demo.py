@@ -191,10 +191,11 @@ def test_demo_runs_and_improves(tmp_path):
     assert row["after"]["median_rotation_deg"] < row["before"]["median_rotation_deg"]
     figs = sorted(p.name for p in (tmp_path / "demo" / "figures").iterdir())
     assert any(f.startswith("compare_") for f in figs) and any(f.startswith("errors_") for f in figs)
+    assert any(f.startswith("cost_") for f in figs)  # the polish ran: its stages are plotted
     from PIL import Image
 
     comp = Image.open(next((tmp_path / "demo" / "figures").glob("compare_*")))
-    assert comp.size == (2 * 320 + 4, 2 * 240 + 4)
+    assert comp.size[0] > 2 * 320 * 0.9 and comp.size[1] > 2 * 240 * 0.9  # four panels of the 320x240 query
     assert (tmp_path / "demo" / "refined_3cm_1deg.txt.json").exists()
 
 
@@ -243,7 +244,7 @@ def test_cli_refine_writes_figures(tiny_case, tmp_path):
                  "--limit", "1", "--quiet", "--figures", str(figs)]) == 0
     pngs = list(figs.glob("*.png"))
     assert len(pngs) == 1 and pngs[0].name.startswith("seq-01")
-    assert Image.open(pngs[0]).size == (2 * 128 + 4, 2 * 96 + 4)
+    assert min(Image.open(pngs[0]).size) > 2 * 96 * 0.9  # four panels of the 128x96 query
 
 
 @pytest.mark.slow

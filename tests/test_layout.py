@@ -26,10 +26,10 @@ LAYERS = {
     "batch": 6,
     "plugin": 7,
     "pipeline": 8,
-    "hloc_step": 9, "demo": 9, "cli": 9, "__init__": 9,
+    "hloc_step": 9, "demo": 9, "cli": 9, "commands": 9, "__init__": 9,
 }
 #: the command and batch layer, which nothing in adapters/, kernels/ or refine/ may import
-TOP = {"cli", "hloc_step", "pipeline", "plugin", "batch", "distributed", "demo", "check"}
+TOP = {"cli", "commands", "hloc_step", "pipeline", "plugin", "batch", "distributed", "demo", "check"}
 #: what adapters/ may import besides itself: the core types
 ADAPTER_DEPS = {"pose", "camera", "fileio", "prior"}
 MAX_LINES = 400

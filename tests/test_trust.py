@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
+from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.confidence import inlier_prior_error, inlier_trust
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
@@ -223,7 +224,8 @@ def test_cli_evaluate_names_unmatched_images(tiny_case, tmp_path):  # noqa: F811
     other = tmp_path / "other.txt"
     other.write_text("".join(f"elsewhere_{k}.png 1 0 0 0 0 0 0\n" for k in range(2)))
     p = _run_cli(["evaluate", "--poses", str(other), "--gt", str(gt), "--json"])
-    assert p.returncode == 2 and p.stdout == "" and "none of its 2 estimates" in p.stderr, p.stderr
+    assert p.returncode == 2 and "none of its 2 estimates" in p.stderr, p.stderr
+    assert json.loads(p.stdout)["file"] == str(other)  # --json: the error as one JSON object
     assert "elsewhere_0.png" in p.stderr and lines[0].split()[0] in p.stderr
     part = tmp_path / "part.txt"
     part.write_text("\n".join(lines[:2] + ["stray.png 1 0 0 0 0 0 0"]) + "\n")
@@ -263,7 +265,8 @@ def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path
 
 @pytest.mark.slow
 def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
-    """A query that failed (its image missing) is retried by the next run once the image is there."""
+    """A query that failed (its image missing) exits 3 after every other result is written, naming it on stderr;
+    the next run says it resumes, retries it once the image is there, and reports this run apart from the total."""
     import shutil
 
     d = tiny_case
@@ -275,14 +278,22 @@ def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
     out = tmp_path / "o.txt"
     args = ["refine", "--scene", str(d / "scene.ply"), "--poses", str(d / "ace.txt"), "--images", str(imgs),
             "--focal", "90", "--out", str(out), "--config", "fast", "--quiet"]
-    assert _run_cli(args).returncode == 0
+    first = _run_cli(args)
+    assert first.returncode == 3, first.stderr
+    assert "failed: seq-01-frame-000001.color.png: FileNotFoundError" in first.stderr
     rep = json.loads((tmp_path / "o.txt.json").read_text())
     failed = [n for n, q in rep["queries"].items() if q.get("error")]
     assert failed == ["seq-01-frame-000001.color.png"]
-    assert rep["totals"]["failed"] == 1
+    assert rep["totals"]["failed"] == 1 and len(read_poses(out)) == 3  # the others are written
     victim.write_bytes(saved)
-    assert _run_cli(args).returncode == 0
+    second = _run_cli(args)
+    assert second.returncode == 0, second.stderr
+    assert "resuming: 2 of 3 queries already done" in second.stderr and "retrying 1 failed" in second.stderr
+    this_run, in_all = second.stdout.splitlines()
+    assert this_run.startswith("this run: refined") and "/ 1 queries" in this_run
+    assert in_all.startswith("in all:") and "/ 3 queries" in in_all
     rep2 = json.loads((tmp_path / "o.txt.json").read_text())
+    assert rep2["resumed"] == {"done": 2, "of": 3, "retried": 1} and rep2["this_run"]["queries"] == 1
     assert rep2["totals"]["failed"] == 0 and not rep2["queries"][failed[0]].get("error")
     assert rep2["queries"][failed[0]]["renders"] > 0
     for n in rep["queries"]:

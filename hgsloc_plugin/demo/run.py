@@ -76,8 +76,7 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
         r0 = [ev0["errors"][n][1] for n in names]
         r1 = [ev1["errors"][n][1] for n in names]
         plot_errors(t0, t1, r0, r1, out / "figures" / f"errors_{tag}.png")
-        plot_costs([[lv["best_cost"] for lv in v["levels"]] for v in q.values()],
-                   out / "figures" / f"cost_per_level_{tag}.png")
+        plot_costs(list(q.values()), out / "figures" / f"cost_{tag}.png")
         n0 = names[0]
         comparison_figure(scene, cam, imgs[0], coarse[n0], read_poses(refined_path)[n0],
                           out / "figures" / f"compare_{tag}_{n0.replace('/', '_')}", background=config.background)

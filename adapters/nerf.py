@@ -1,0 +1,148 @@
+"""NeRF-style ``transforms.json`` (instant-ngp, nerfstudio, the NeRF synthetic sets) as poses and intrinsics.
+
+Each frame has a ``file_path`` and a camera-to-world ``transform_matrix`` [4, 4] with OpenGL camera axes (x right,
+y up, z back); intrinsics are shared at the top level or per frame: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``,
+``h`` (or ``camera_angle_x`` for the focal), with optional distortion ``k1 k2 k3 k4 p1 p2``. We convert to
+world-to-camera with OpenCV axes (CONVENTIONS §2: negate columns y and z, then invert). Writing refined poses back
+keeps the whole JSON structure; only the refined frames' ``transform_matrix`` changes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hgsloc_plugin.camera import Camera
+from hgsloc_plugin.fileio import atomic_write_bytes
+from hgsloc_plugin.pose import Pose, rotmat_to_qvec
+
+from .names import canonical_name
+from .posefile import PoseFile, Record
+
+DIALECT = "transforms_json"
+DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+_FLIP = np.diag([1.0, -1.0, -1.0])
+
+
+def is_transforms_json(path) -> bool:
+    """A ``.json`` whose top level is an object with a ``frames`` list."""
+    path = Path(path)
+    if path.suffix.lower() != ".json":
+        return False
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("frames"), list)
+
+
+def _load(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not (isinstance(data, dict) and isinstance(data.get("frames"), list)):
+        raise ValueError(f"{path}: expected an object with a 'frames' list (NeRF transforms.json)")
+    return data
+
+
+def frame_name(frame: dict) -> str:
+    """A frame's image name: its ``file_path`` without a leading './'."""
+    return str(frame["file_path"]).replace("\\", "/").removeprefix("./")
+
+
+def c2w_gl_to_pose(m) -> Pose:
+    """A camera-to-world [4, 4] (or [3, 4]) with OpenGL axes -> world-to-camera Pose with OpenCV axes."""
+    m = np.asarray(m, np.float64)
+    R = m[:3, :3] @ _FLIP  # OpenGL -> OpenCV camera axes: negate the y and z columns
+    U, _, Vt = np.linalg.svd(R)  # exported matrices carry rounding: the nearest rotation
+    R = U @ Vt
+    return Pose(rotmat_to_qvec(R.T), -R.T @ m[:3, 3])
+
+
+def pose_to_c2w_gl(pose: Pose) -> list[list[float]]:
+    """The inverse of :func:`c2w_gl_to_pose`: a camera-to-world [4, 4] with OpenGL axes, as nested lists."""
+    m = np.eye(4)
+    m[:3, :3] = pose.R.T @ _FLIP
+    m[:3, 3] = pose.centre()
+    return [[float(v) for v in row] for row in m]
+
+
+def read_transforms_json(path) -> PoseFile:
+    """The frames' poses as a ``PoseFile`` (dialect ``transforms_json``; names from ``file_path``)."""
+    path = Path(path)
+    records, seen = [], {}
+    for k, fr in enumerate(_load(path)["frames"]):
+        if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
+            raise ValueError(f"{path}: frame {k}: needs 'file_path' and 'transform_matrix'")
+        name = frame_name(fr)
+        m = np.asarray(fr["transform_matrix"], np.float64)
+        if m.shape not in ((4, 4), (3, 4)):
+            raise ValueError(f"{path}: frame {k} ({name}): transform_matrix must be 4x4, got {list(m.shape)}")
+        if name in seen:
+            raise ValueError(f"{path}: frame {k}: image {name!r} appears twice (first: frame {seen[name]})")
+        seen[name] = k
+        pose = c2w_gl_to_pose(m) if np.all(np.isfinite(m)) else None
+        records.append(Record(k + 1, "", name, pose, [name]))
+    if not records:
+        raise ValueError(f"{path}: no frames")
+    return PoseFile(path, DIALECT, [], records)
+
+
+def write_transforms_json(path, poses, like: PoseFile) -> Path:
+    """``like``'s JSON with the frames in ``poses`` given new ``transform_matrix`` values; all else unchanged."""
+    path = Path(path)
+    if path.exists() and path.resolve() == like.path.resolve():
+        raise ValueError(f"{path}: refusing to overwrite the input pose file")
+    data = _load(like.path)
+    for fr in data["frames"]:
+        p = poses.get(frame_name(fr))
+        if p is not None and p != like[frame_name(fr)]:
+            fr["transform_matrix"] = pose_to_c2w_gl(p)
+    atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
+    return path
+
+
+def transforms_intrinsics(path, *, allow_distortion: bool = False):
+    """(name, width, height) -> Camera from the file's shared or per-frame intrinsics, scaled to the image's size
+    (the principal point too); a non-zero distortion coefficient is refused unless ``allow_distortion`` (the images
+    are already undistorted)."""
+    path = Path(path)
+    data = _load(path)
+    table = {}
+    for k, fr in enumerate(data["frames"]):
+        v = {**{key: val for key, val in data.items() if key != "frames"}, **fr}
+
+        def need(key, v=v, k=k):
+            if key not in v:
+                raise ValueError(f"{path}: frame {k}: no {key!r} (per frame or shared)")
+            return float(v[key])
+
+        w, h = need("w"), need("h")
+        if "fl_x" in v:
+            fx = float(v["fl_x"])
+        elif "camera_angle_x" in v:
+            fx = 0.5 * w / math.tan(0.5 * float(v["camera_angle_x"]))
+        else:
+            raise ValueError(f"{path}: frame {k}: no 'fl_x' or 'camera_angle_x' (per frame or shared)")
+        fy = float(v.get("fl_y", fx))
+        dist = {d: float(v[d]) for d in DISTORTION if d in v and float(v[d]) != 0.0}
+        if dist and not allow_distortion:
+            raise ValueError(f"{path}: frame {k}: distortion {dist}; 3DGS renders undistorted pinhole images. "
+                             "Undistort the images first and pass --allow-distortion (allow_distortion=True)")
+        table[canonical_name(frame_name(fr))] = Camera(int(round(w)), int(round(h)), fx, fy,
+                                                       float(v.get("cx", w / 2)), float(v.get("cy", h / 2)))
+
+    def get(name, width, height):
+        cam = table.get(canonical_name(name))
+        if cam is None:
+            raise KeyError(f"{path}: no frame for image {name!r}")
+        if (cam.width, cam.height) == (width, height):
+            return cam
+        sx, sy = width / cam.width, height / cam.height
+        return Camera(width, height, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy)
+
+    return get

@@ -1,0 +1,225 @@
+"""The ``hgsloc`` commands, one function each (``cmd_*(args) -> exit code``); ``cli.py`` parses the command line."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+from .fileio import dumps_json
+from .units import parse_angle, parse_length, prior_error_overrides
+
+logger = logging.getLogger("hgsloc_plugin")
+EXIT_FAILED_QUERIES = 3
+
+
+def _intrinsics(args):
+    from .adapters import intrinsics as intr
+
+    given = [x for x in (args.focal, args.intrinsics, args.colmap, args.pgt_focal) if x is not None]
+    if len(given) != 1:
+        raise ValueError("give exactly one of --focal, --intrinsics, --colmap, --pgt-focal")
+    if args.focal is not None:
+        return intr.from_focal(args.focal)
+    if args.intrinsics is not None:
+        return intr.from_query_list(args.intrinsics, allow_distortion=args.allow_distortion)
+    if args.colmap is not None:
+        return intr.from_colmap(args.colmap, allow_distortion=args.allow_distortion)
+    return intr.from_pgt(args.pgt_focal)
+
+
+def _white(args) -> bool:
+    """--white-background, or what the trainer recorded in the --scene folder's cfg_args."""
+    from .scene import resolve_scene
+
+    return bool(args.white_background or resolve_scene(args.scene)[1])
+
+
+def cmd_refine(args) -> int:
+    from .pipeline import refine_pose_file
+    from .refine import RefineConfig
+
+    overrides = {}
+    if args.metric:
+        overrides["metric"] = args.metric
+    if _white(args):
+        overrides["background"] = (1.0, 1.0, 1.0)
+    if args.max_shift is not None:
+        overrides["max_shift"] = parse_length(args.max_shift, "--max-shift")
+    if args.max_rotation is not None:
+        overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
+    overrides.update(prior_error_overrides(args.prior_error, args.prior_rotation_error))
+    if args.no_polish:
+        overrides["polish"] = False
+    config = RefineConfig.preset(args.config, **overrides)
+    if Path(args.out).resolve() == Path(args.poses).resolve():
+        raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    scene, pf = inputs = _inputs(args)
+    if not args.skip_check:  # refining poses in another frame or convention would return nonsense
+        rep = _check(args, 4, inputs=inputs)
+        if not rep.agrees:
+            raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
+                             "refines anyway)")
+    rep = refine_pose_file(scene, pf, Path(args.images), _intrinsics(args), Path(args.out),
+                           config=config, limit=args.limit, gt_variant=args.gt_variant,
+                           figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
+                           workers=args.workers, ray_address=args.ray_address,
+                           inlier_region=not args.no_inlier_region)
+    failed = {n: q["error"] for n, q in rep["queries"].items() if q.get("error")}
+    for name, why in failed.items():
+        print(f"hgsloc: failed: {name}: {why}", file=sys.stderr)
+    if args.json:
+        print(dumps_json({"output": str(args.out), "report": str(args.out) + ".json", "totals": rep["totals"],
+                          "this_run": rep["this_run"], "resumed": rep["resumed"], "failed": failed}))
+    else:
+        if rep["resumed"]:
+            print("this run: " + summary_line(rep["this_run"], args.out))
+            print("in all:   " + summary_line(rep["totals"], args.out))
+        else:
+            print(summary_line(rep["totals"], args.out))
+    return EXIT_FAILED_QUERIES if failed else 0
+
+
+def summary_line(t: dict, out) -> str:
+    """One line: refined (fused with the prior), kept (per reason), failed, median confidence, effort (renders,
+    queries that needed the lattice search, seconds)."""
+    kept = sum(t.get("rejected", {}).values())
+    why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
+    conf, st, sr = t.get("median_confidence"), t.get("median_sigma_t"), t.get("median_sigma_r_deg")
+    sig = f", median sigma {st:.3g} / {sr:.3g} deg" if st is not None and sr is not None else ""
+    fused = f" ({t['fused']} fused with the prior's expected error)" if t.get("fused") else ""
+    return (f"refined {t['accepted']} / {t['queries']} queries{fused}, kept the prior for {kept}"
+            + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
+            + (f"{conf:.2f}" if conf is not None else "-") + sig
+            + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
+
+
+def _inputs(args):
+    """The command's scene and pose file, each read once: (GaussianScene, PoseFile)."""
+    from .adapters import read_poses
+    from .scene import GaussianScene
+
+    return GaussianScene.from_ply(args.scene), read_poses(args.poses)
+
+
+def _check(args, sample: int, figures=None, inputs=None):
+    from .adapters.names import resolve_image
+    from .check import check_poses
+
+    scene, pf = inputs or _inputs(args)
+    images = Path(args.images)
+    return check_poses(scene, {n: pf[n] for n in pf}, lambda n: resolve_image(n, images), _intrinsics(args),
+                       sample=sample, background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0),
+                       figures=figures)
+
+
+def cmd_check(args) -> int:
+
+    rep = _check(args, args.sample, Path(args.figures) if args.figures else None)
+    if args.json:
+        print(dumps_json(rep.to_dict()))
+    else:
+        for k, n in enumerate(rep.names):
+            alt = min((h for h in rep.costs if h != "as given"), key=lambda h: rep.costs[h][k])
+            moved = f", aligned {rep.aligned['as given'][k]:.3f}" if "as given" in rep.aligned else ""
+            print(f"{n}: cs cost {rep.costs['as given'][k]:.3f}{moved} (best other reading '{alt}' "
+                  f"{rep.costs[alt][k]:.3f}), PSNR {rep.psnr[k]:.1f} dB, SSIM {rep.ssim[k]:.3f}")
+        print(f"{rep.verdict}: {rep.message()}")
+    return 0 if rep.ok else 1
+
+
+def cmd_evaluate(args) -> int:
+    from .adapters import read_poses
+    from .evaluate import evaluate, mean_over_scenes, units_note, unmatched
+
+    if len(args.poses) != len(args.gt):
+        raise ValueError("give one --gt per --poses (one pair per scene)")
+    results = []
+    for p, g in zip(args.poses, args.gt):
+        est, gt = read_poses(p), read_poses(g)
+        missing, extra = unmatched(est, gt)
+        if len(missing) == len(gt):  # wrong pair of files, or a name style the matcher misses
+            raise ValueError(f"{p}: none of its {len(est)} estimates names an image of {g} (e.g. "
+                             f"{next(iter(est))!r} vs {next(iter(gt))!r}): not the ground truth of these poses?")
+        if missing:
+            logger.warning("%s: %d of the %d images of %s have no estimate (counted as failed), e.g. %r", p,
+                           len(missing), len(gt), g, missing[0])
+        if extra:
+            logger.warning("%s: %d estimates name no image of %s (not counted), e.g. %r", p, len(extra), g, extra[0])
+        r = evaluate(est, gt, scale_to_m=args.scale)
+        r.pop("errors")
+        r["poses"], r["gt"] = p, g
+        results.append(r)
+    if args.json:
+        out = results[0] if len(results) == 1 else {"scenes": results, "mean": mean_over_scenes(results),
+                                                    "units": results[0]["units"]}
+        print(dumps_json(out))
+        return 0
+    print(f"units: {units_note(args.scale)}")
+    for r in results:
+        rc = r["recall"]
+        print(f"{r['poses']}: n={r['n']} missing={r['missing']} median {r['median_translation_cm']:.2f} cm / "
+              f"{r['median_rotation_deg']:.3f} deg, recall 5cm5deg {100 * rc['5cm5deg']:.1f}% "
+              f"2cm2deg {100 * rc['2cm2deg']:.1f}% 1cm1deg {100 * rc['1cm1deg']:.1f}%")
+    if len(results) > 1:
+        m = mean_over_scenes(results)
+        rc = m["recall"]
+        print(f"mean over {m['scenes']} scenes: {m['median_translation_cm']:.2f} cm / {m['median_rotation_deg']:.3f} "
+              f"deg, {100 * rc['5cm5deg']:.1f} / {100 * rc['2cm2deg']:.1f} / {100 * rc['1cm1deg']:.1f} %")
+    return 0
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.replace(",", " ").split()]
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}") from exc
+    if len(v) != n:
+        raise ValueError(f"{what}: expected {n} numbers, got {len(v)}")
+    return v
+
+
+def cmd_render(args) -> int:
+    from . import Camera, GaussianScene, Pose, render
+    from .viz import save_png
+
+    p = _floats(args.pose, 7, "--pose 'qw qx qy qz tx ty tz'")
+    c = _floats(args.camera, 6, "--camera 'W H fx fy cx cy'")
+    cam = Camera(int(c[0]), int(c[1]), *c[2:])
+    img = render(GaussianScene.from_ply(args.scene), cam, Pose(p[:4], p[4:]),
+                 background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0))
+    save_png(img, args.out)
+    print(f"wrote {args.out} ({cam.width}x{cam.height})")
+    return 0
+
+
+def cmd_perturb(args) -> int:
+    import numpy as np
+
+    from .adapters import read_poses, write_poses
+    from .noise import apply_protocol, parse_protocol
+
+    kind, a, b = parse_protocol(args.noise)  # a bad spec is an error before anything is read
+    if Path(args.out).resolve() == Path(args.poses).resolve():
+        raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    pf = read_poses(args.poses)
+    rng = np.random.default_rng(args.seed)
+    poses = {n: apply_protocol(p, args.noise, rng) for n, p in pf.items() if p is not None}
+    write_poses(args.out, poses, like=pf)
+    what = (f"each camera centre moved exactly {a:g} scene units and rotated exactly {b:g} deg, random directions"
+            if kind == "se3" else f"the paper's q{int(a)},t{int(b)} noise on the raw components")
+    kept = len(pf) - len(poses)
+    print(f"wrote {args.out}: {len(poses)} poses ({what}; seed {args.seed})"
+          + (f"; {kept} failed priors copied as they are" if kept else ""))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from .demo.run import DEFAULT_NOISE, format_table, run_demo
+
+    noise = args.noise or list(DEFAULT_NOISE)
+    summary = run_demo(Path(args.out), queries=args.queries, noise=noise, preset=args.config,
+                       progress=not args.quiet)
+    print(format_table(summary))
+    print(f"outputs in {args.out}: refined pose files (+ .json reports), figures/")
+    return 0

@@ -42,10 +42,9 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
     return Path(output)
 
 
-def cli(argv=None) -> int:
-    """The shell entry point; user errors end in one line on stderr and exit code 2."""
-    from .refine import RefineConfig
-    from .units import count_arg, prior_error_overrides
+def build_parser() -> argparse.ArgumentParser:
+    """The step's command line (hloc's flag style)."""
+    from .units import count_arg
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, required=True)
@@ -59,7 +58,15 @@ def cli(argv=None) -> int:
     ap.add_argument("--prior_error", help="the localizer's typical (median) camera-centre error, e.g. 2cm: each "
                                           "refined pose is fused with its prior (default: unknown)")
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
-    a = ap.parse_args(argv)
+    return ap
+
+
+def cli(argv=None) -> int:
+    """The shell entry point; user errors end in one line on stderr and exit code 2."""
+    from .refine import RefineConfig
+    from .units import prior_error_overrides
+
+    a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO)
     try:
         overrides = prior_error_overrides(a.prior_error, a.prior_rotation_error,

@@ -117,7 +117,8 @@ def _pose_file():
         q.pop("seconds", None)
         for p in q.get("polish", []):
             p.pop("seconds", None)
-    rep["totals"].pop("seconds")
+    for part in ("totals", "this_run"):
+        rep[part].pop("seconds")
     for k in ("input", "output", "scene"):  # paths of this checkout
         rep.pop(k)
     return [], [text, rep]

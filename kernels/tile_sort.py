@@ -12,8 +12,8 @@ this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
 On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread).
 There (``sort="parallel"``) each visible Gaussian writes one 64-bit key per tile it touches, in parallel,
 ``(pose * tiles + tile) << 32 | depth bits``, at its exclusive prefix sum of the tile counts
-(:func:`isect_keys_kernel`); the keys are sorted by a stable device radix sort (``torch.sort(stable=True)``,
-CUB on CUDA) and each tile's range is its key count (:func:`bin_parallel`). Keys are written in Gaussian order,
+(:func:`isect_keys_kernel`); the keys are sorted by a stable LSD radix sort written as Taichi kernels
+(``radix.py``) and each tile's range is its key count (:func:`bin_parallel`). Keys are written in Gaussian order,
 so the stable sort leaves ties in index order: the lists are those of the serial sort, entry for entry.
 """
 
@@ -25,6 +25,7 @@ import taichi as ti
 
 from .config import RasterConfig
 from .grain import item, spread
+from .radix import exclusive_scan, radix_sort
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
 RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
@@ -186,39 +187,61 @@ def isect_keys_kernel():
     return isect_keys
 
 
-def bin_parallel(depth, rect, ntiles, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int, scratch,
-                 tile_start) -> np.ndarray:
-    """Tile lists of ``num_poses`` poses by a parallel key sort (torch tensors on the Taichi device).
+@functools.cache
+def _tile_kernels():
+    """(pose_totals, tile_starts) of the parallel binning."""
+
+    @ti.kernel
+    def pose_totals(offsets: ti.types.ndarray(dtype=ti.i64, ndim=1), num_poses: ti.i32, num_gaussians: ti.i32,
+                    totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        for b in range(num_poses):
+            totals[b] = offsets[(b + 1) * num_gaussians] - offsets[b * num_gaussians]
+
+    @ti.kernel
+    def tile_starts(keys: ti.types.ndarray(dtype=ti.i64, ndim=1), m: ti.i32, num_poses: ti.i32, num_tiles: ti.i32,
+                    counts: ti.types.ndarray(dtype=ti.i32, ndim=1), tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        for j in range(num_poses * num_tiles):
+            counts[j] = 0
+        for k in range(m):
+            ti.atomic_add(counts[ti.cast(keys[k] >> 32, ti.i32)], 1)
+        for b in range(num_poses):
+            acc = 0
+            tile_start[b, 0] = 0
+            for t in range(num_tiles):
+                acc += counts[b * num_tiles + t]
+                tile_start[b, t + 1] = acc
+
+    return pose_totals, tile_starts
+
+
+def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int,
+                 lists, scratch, tile_start, tile_counts):
+    """Tile lists of ``num_poses`` poses by a parallel key sort, every step a Taichi kernel.
 
     Args:
-        depth [B, >= N], rect [B, >= N, 4], ntiles [B, >= N]: the projection's outputs (torch tensors).
-        scratch: ``scratch(M)`` -> (keys [>= M] i64, ids [>= M] i32, isect [>= M] i32) torch tensors.
-        tile_start: [B, num_tiles + 1] i32 torch tensor; its first ``num_poses`` rows receive each tile's start
-            relative to the pose's first entry (the last column: the pose's total).
+        depth [B, >= N] f32, rect [B, >= N, 4] i32, ntiles [B, >= N] i32: the projection's outputs.
+        offsets: int64 [>= B * N + 1] scratch (the exclusive prefix sum of ``ntiles``, pose-major).
+        lists: ``lists(M)`` -> buffers with ``keys`` / ``keys_tmp`` (int64) and ``ids`` / ``ids_tmp`` (int32) of at
+            least M entries; its ``isect`` is set to the buffer that ends up holding the lists.
+        scratch: ``radix.radix_sort``'s ``counts``, ``offsets`` and ``sums``.
+        tile_start: [B, num_tiles + 1] int32; its first ``num_poses`` rows receive each tile's start relative to
+            the pose's first entry (the last column: the pose's total). tile_counts: int32 [>= B * num_tiles].
 
     Returns:
-        totals [num_poses] int64 (numpy): entries per pose. The ``isect`` of ``scratch`` holds the lists, each pose's
-        from the sum of the earlier poses' totals, as the serial sort writes them.
+        totals [num_poses] int64 (numpy): entries per pose; the lists hold each pose's entries from the sum of the
+        earlier poses' totals, as the serial sort writes them.
     """
-    import torch
-
     B, n = num_poses, num_gaussians
-    cuda = depth.is_cuda
-    if cuda:
-        ti.sync()  # the projection's writes are done before torch reads them
-    counts = ntiles[:B, :n].reshape(-1).to(torch.int64)
-    offsets = torch.cumsum(counts, 0) - counts
-    totals = counts.view(B, n).sum(1).cpu().numpy()
+    exclusive_scan(ntiles, B, n, scratch.sums, offsets)
+    pose_totals, tile_starts = _tile_kernels()
+    totals = np.empty(B, np.int64)
+    pose_totals(offsets, B, n, totals)
     m = int(totals.sum())
-    keys, ids, isect = scratch(m)
-    isect_keys_kernel()(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, keys, ids)
-    if cuda:
-        ti.sync()
-    sorted_keys, order = torch.sort(keys[:m], stable=True)
-    torch.index_select(ids[:m], 0, order, out=isect[:m])
-    per_tile = torch.bincount(sorted_keys >> 32, minlength=B * num_tiles).view(B, num_tiles)
-    tile_start[:B, 0] = 0
-    tile_start[:B, 1:] = torch.cumsum(per_tile, 1)
-    if cuda:
-        torch.cuda.synchronize()  # done before the blend kernels read the lists
+    buf = lists(m)
+    isect_keys_kernel()(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, buf.keys, buf.ids)
+    bits = 32 + max(1, (B * num_tiles - 1).bit_length())
+    keys, ids = radix_sort(buf.keys, buf.ids, buf.keys_tmp, buf.ids_tmp, m, bits, scratch.counts,
+                           scratch.offsets, scratch.sums)
+    buf.isect = ids
+    tile_starts(keys, m, B, num_tiles, tile_counts, tile_start)
     return totals

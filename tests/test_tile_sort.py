@@ -1,5 +1,6 @@
-"""The parallel tile sort (the GPU layout: a key per Gaussian and tile, a stable device sort; RasterConfig.sort)
-against the serial one (the CPU layout) and the reference binning, both run here on the CPU backend."""
+"""The parallel tile sort (the GPU layout: a key per Gaussian and tile, a stable radix sort in Taichi;
+RasterConfig.sort) against the serial one (the CPU layout), numpy's stable sort and the reference binning, all
+run here on the CPU backend."""
 
 from __future__ import annotations
 
@@ -112,25 +113,62 @@ def test_sort_setting_is_checked():
         hp.RasterConfig(sort="gpu")
 
 
-def test_sort_mode_per_backend(monkeypatch, caplog):
-    """auto: serial on the CPU, parallel on CUDA; on CUDA without a CUDA torch the parallel sort cannot run:
-    auto falls back to serial with a warning, an explicit "parallel" is an error saying why."""
-    import importlib
-    import logging
+def test_sort_mode_per_backend():
+    """auto: serial on the CPU, parallel on CUDA (every step a Taichi kernel: no CUDA torch needed)."""
+    from hgsloc_plugin.render.buffers import sort_mode
 
-    render = importlib.import_module("hgsloc_plugin.render.buffers")
+    assert sort_mode("auto", "cpu") == "serial" and sort_mode("auto", "cuda") == "parallel"
+    assert sort_mode("parallel", "cpu") == "parallel" and sort_mode("serial", "cuda") == "serial"
 
-    assert render.sort_mode("auto", "cpu") == "serial"
-    assert render.sort_mode("parallel", "cpu") == "parallel"
-    assert render.sort_mode("serial", "cuda") == "serial"
-    monkeypatch.setattr(render, "_torch_has_cuda", lambda: True)
-    assert render.sort_mode("auto", "cuda") == "parallel"
-    monkeypatch.setattr(render, "_torch_has_cuda", lambda: False)
-    with caplog.at_level(logging.WARNING, logger="hgsloc_plugin"):
-        assert render.sort_mode("auto", "cuda") == "serial"
-    assert "torch has no CUDA" in caplog.text and "serial sort" in caplog.text
-    with pytest.raises(RuntimeError, match="install a CUDA build of torch"):
-        render.sort_mode("parallel", "cuda")
+
+def test_no_torch_in_the_render_path():
+    """The renderer and its kernels import no torch (a CPU-only torch beside CUDA Taichi runs the fast path)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for f in [*(root / "kernels").glob("*.py"), *(root / "hgsloc_plugin" / "render").glob("*.py")]:
+        for node in ast.walk(ast.parse(f.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            assert not any(n.split(".")[0] == "torch" for n in names), f"{f.name} imports torch"
+
+
+@pytest.mark.parametrize("m,bits,dupes", [(1, 40, False), (700, 40, True), (50_000, 48, True), (0, 40, False)])
+def test_radix_sort_is_a_stable_sort(m, bits, dupes):
+    """``kernels/radix.py`` against numpy's stable sort: random 48-bit keys (many equal with ``dupes``), ids in
+    input order; blocks of several sizes (one block, many, a partial last one)."""
+    import taichi as ti
+
+    from hgsloc_plugin.kernels import radix
+
+    hp.init("cpu")
+    rng = np.random.default_rng(m)
+    keys = rng.integers(0, 1 << (bits - 1), size=max(m, 1), dtype=np.int64)
+    if dupes:
+        keys = keys[rng.integers(0, max(m // 10, 1), size=max(m, 1))]
+    ids = np.arange(max(m, 1), dtype=np.int32)
+
+    def nd(a):
+        out = ti.ndarray(ti.i64 if a.dtype == np.int64 else ti.i32, a.shape)
+        out.from_numpy(np.ascontiguousarray(a))
+        return out
+
+    k, i = nd(keys), nd(ids)
+    kt, it = nd(np.zeros_like(keys)), nd(np.zeros_like(ids))
+    counts = ti.ndarray(ti.i32, (radix.DIGITS, radix.MAX_BLOCKS))
+    offsets = ti.ndarray(ti.i64, (radix.DIGITS * radix.MAX_BLOCKS + 1,))
+    sums = ti.ndarray(ti.i64, (radix.MAX_BLOCKS + 1,))
+    ks, is_ = radix.radix_sort(k, i, kt, it, m, bits, counts, offsets, sums)
+    order = np.argsort(keys[:m], kind="stable")
+    np.testing.assert_array_equal(ks.to_numpy()[:m], keys[:m][order])
+    np.testing.assert_array_equal(is_.to_numpy()[:m], ids[:m][order])
+    if m:  # the scan: exclusive prefix sums and the total
+        vals = rng.integers(0, 9, size=(3, m), dtype=np.int32)
+        out = ti.ndarray(ti.i64, (2 * m + 2,))
+        radix.exclusive_scan(nd(vals), 2, m, sums, out)
+        flat = vals[:2].reshape(-1).astype(np.int64)
+        np.testing.assert_array_equal(out.to_numpy()[:2 * m + 1], np.concatenate([[0], np.cumsum(flat)]))
 
 
 def test_parallel_sort_with_nothing_in_view():

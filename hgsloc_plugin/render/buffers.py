@@ -1,8 +1,6 @@
 """Device buffers of the renderer, as typed records: per-Gaussian records, per-image-size workspaces, the pool.
 
-Shapes use B (poses per launch), n (Gaussians), H x W (image), tx x ty (tiles). With the parallel tile sort
-(``RasterConfig.sort``) the projection's depth / rect / ntiles, the tile starts and the lists are torch tensors
-on the Taichi device, which the Taichi kernels read and write in place; otherwise Taichi ndarrays.
+Shapes use B (poses per launch), n (Gaussians), H x W (image), tx x ty (tiles); every buffer is a Taichi ndarray.
 """
 
 from __future__ import annotations
@@ -13,10 +11,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from ..backend import current_arch
 from ..kernels import window_grad
 from ..kernels.layout import Rec
 from ..kernels.pose_grad import NDER, NXI
+from ..kernels.radix import DIGITS, MAX_BLOCKS
 from ..kernels.readback import readback_kernel
 from ..kernels.tile_sort import RADIX
 
@@ -25,50 +23,20 @@ logger = logging.getLogger("hgsloc_plugin.render")
 _HOST_DTYPES = {ti.f32: np.float32, ti.f64: np.float64, ti.i32: np.int32, ti.i64: np.int64}
 
 
-def read_rows(arr, n: int) -> np.ndarray:
-    """The first ``n`` rows of a device array [B, ...] (a Taichi ndarray or a torch tensor) as a host array
-    [n, ...] (``kernels/readback.py``: a workspace's ``to_numpy`` copies all B poses)."""
-    if not isinstance(arr, ti.Ndarray):
-        if arr.is_cuda:
-            ti.sync()  # Taichi kernels that wrote the tensor are done before torch copies it
-        return arr[:n].to("cpu", copy=True).numpy()
+def read_rows(arr: ti.Ndarray, n: int) -> np.ndarray:
+    """The first ``n`` rows of a device array [B, ...] as a host array [n, ...] (``kernels/readback.py``: a
+    workspace's ``to_numpy`` copies all B poses)."""
     out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
     readback_kernel()(arr, out)
     return out
 
 
-def _torch_has_cuda() -> bool:
-    import torch
-
-    return torch.cuda.is_available()
-
-
 def sort_mode(requested: str, arch: str) -> str:
-    """The tile sort a renderer uses (``RasterConfig.sort``) on backend ``arch``: "parallel" on CUDA for
-    "auto", unless torch (which sorts the keys on the device) has no CUDA there: then "serial", with a warning."""
-    if requested == "serial" or (requested == "auto" and arch != "cuda"):
-        return "serial"
-    if arch == "cuda" and not _torch_has_cuda():
-        msg = ("Taichi runs on CUDA but torch has no CUDA (torch.cuda.is_available() is False), and the parallel "
-               "tile sort sorts its keys with torch on the GPU")
-        if requested == "parallel":
-            raise RuntimeError(f"RasterConfig(sort='parallel'): {msg}; install a CUDA build of torch")
-        logger.warning("%s: falling back to the serial sort (one GPU thread per pose, several times slower); "
-                       "install a CUDA build of torch", msg)
-        return "serial"
-    return "parallel"
-
-
-def torch_device() -> str:
-    """The torch device beside Taichi's backend."""
-    return "cuda" if current_arch() == "cuda" else "cpu"
-
-
-def _torch_zeros(shape, dtype_name: str, fill: bool = True):
-    import torch
-
-    make = torch.zeros if fill else torch.empty
-    return make(shape, dtype=getattr(torch, dtype_name), device=torch_device())
+    """The tile sort a renderer uses (``RasterConfig.sort``) on backend ``arch``: for "auto", "parallel" on CUDA
+    (one thread per Gaussian and tile, a device radix sort) and "serial" on the CPU (one thread per pose)."""
+    if requested == "auto":
+        return "parallel" if arch == "cuda" else "serial"
+    return requested
 
 
 @dataclass
@@ -78,7 +46,8 @@ class ProjectionRecords:
     Attributes:
         depth [B, n]; rect [B, n, 4] (tile box); ntiles [B, n] (tiles touched; 0: culled); packed [B, n, Rec.SIZE]
         (the blend's record per Gaussian); keys_a / keys_b / ids_a / ids_b [B, n] and rects [4, B, n]: the
-        serial sort's scratch (None for the parallel sort).
+        serial sort's scratch; offsets [B * n + 1]: the parallel sort's prefix sum of ``ntiles`` (None for the
+        other sort).
     """
 
     batch: int
@@ -92,16 +61,15 @@ class ProjectionRecords:
     ids_a: ti.Ndarray | None = None
     ids_b: ti.Ndarray | None = None
     rects: ti.Ndarray | None = None
+    offsets: ti.Ndarray | None = None
 
     @classmethod
     def allocate(cls, B: int, n: int, parallel: bool) -> ProjectionRecords:
         nd = ti.ndarray
-        packed = nd(ti.f32, (B, n, Rec.SIZE))
+        common = (B, n, nd(ti.f32, (B, n)), nd(ti.i32, (B, n, 4)), nd(ti.i32, (B, n)), nd(ti.f32, (B, n, Rec.SIZE)))
         if parallel:
-            return cls(B, n, _torch_zeros((B, n), "float32"), _torch_zeros((B, n, 4), "int32"),
-                       _torch_zeros((B, n), "int32"), packed)
-        return cls(B, n, nd(ti.f32, (B, n)), nd(ti.i32, (B, n, 4)), nd(ti.i32, (B, n)), packed,
-                   nd(ti.u32, (B, n)), nd(ti.u32, (B, n)), nd(ti.i32, (B, n)), nd(ti.i32, (B, n)),
+            return cls(*common, offsets=nd(ti.i64, (B * n + 1,)))
+        return cls(*common, nd(ti.u32, (B, n)), nd(ti.u32, (B, n)), nd(ti.i32, (B, n)), nd(ti.i32, (B, n)),
                    nd(ti.i32, (4, B, n)))
 
 
@@ -158,8 +126,8 @@ class StatBuffers:
 class Workspace:
     """Buffers of one image size and tiling for up to ``batch`` poses: the poses and intrinsics uploaded, the tile
     lists' starts [B, tx * ty + 1] and offsets isect_base [B], the serial sort's counters (totals [B],
-    hist [B, RADIX], cursor [B, tx * ty]; None for the parallel sort), and, made on first use, the blended
-    images and the cost scratch."""
+    hist [B, RADIX], cursor [B, tx * ty]) or the parallel sort's tile counts [B * tx * ty], and, made on first
+    use, the blended images and the cost scratch."""
 
     batch: int
     tile: int
@@ -170,10 +138,11 @@ class Workspace:
     extent: ti.Ndarray  # [2]: the projection's extent coefficients
     isect_base: ti.Ndarray  # [B]
     background: ti.Ndarray  # [3]
-    tile_start: object
+    tile_start: ti.Ndarray
     totals: ti.Ndarray | None = None
     hist: ti.Ndarray | None = None
     cursor: ti.Ndarray | None = None
+    tile_counts: ti.Ndarray | None = None
     images: ImageBuffers | None = None
     window: WindowBuffers | None = None
     stats: StatBuffers | None = None
@@ -186,11 +155,10 @@ class Workspace:
         nd = ti.ndarray
         common = dict(batch=B, tile=tile, tiles=(tx, ty), viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)),
                       intrin=nd(ti.f32, (4,)), extent=nd(ti.f32, (2,)), isect_base=nd(ti.i64, (B,)),
-                      background=nd(ti.f32, (3,)))
+                      background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:
-            return cls(**common, tile_start=_torch_zeros((B, tx * ty + 1), "int32"))
-        return cls(**common, tile_start=nd(ti.i32, (B, tx * ty + 1)), totals=nd(ti.i64, (B,)),
-                   hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)))
+            return cls(**common, tile_counts=nd(ti.i32, (B * tx * ty,)))
+        return cls(**common, totals=nd(ti.i64, (B,)), hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)))
 
 
 @dataclass
@@ -237,13 +205,31 @@ class DerivativeWorkspace:
 
 @dataclass
 class TileLists:
-    """The tile lists of the last launch: isect [capacity] (resident Gaussian index per entry), with the parallel
-    sort's keys (int64) and ids (int32) beside it (torch; None for the serial sort)."""
+    """The tile lists of the last launch: isect [capacity] (resident Gaussian index per entry). For the parallel
+    sort, its keys (int64) and ids (int32) and their radix-sort twins; ``isect`` is then whichever ids buffer
+    the sort ended in."""
 
-    isect: object
+    isect: ti.Ndarray
     capacity: int
-    keys: object = None
-    ids: object = None
+    keys: ti.Ndarray | None = None
+    ids: ti.Ndarray | None = None
+    keys_tmp: ti.Ndarray | None = None
+    ids_tmp: ti.Ndarray | None = None
+
+
+@dataclass
+class SortScratch:
+    """The parallel sort's fixed scratch (``kernels/radix.py``): per-pass digit counts [DIGITS, MAX_BLOCKS], their
+    scan [DIGITS * MAX_BLOCKS + 1] and block sums [MAX_BLOCKS + 1]."""
+
+    counts: ti.Ndarray
+    offsets: ti.Ndarray
+    sums: ti.Ndarray
+
+    @classmethod
+    def allocate(cls) -> SortScratch:
+        return cls(ti.ndarray(ti.i32, (DIGITS, MAX_BLOCKS)), ti.ndarray(ti.i64, (DIGITS * MAX_BLOCKS + 1,)),
+                   ti.ndarray(ti.i64, (MAX_BLOCKS + 1,)))
 
 
 @dataclass
@@ -259,6 +245,7 @@ class Pool:
     records: ProjectionRecords | None = None
     derivative_records: DerivativeRecords | None = None
     lists: TileLists | None = None
+    sort_scratch: SortScratch | None = None
 
     def grown(self, cur, batch: int, n: int):
         """(batch, columns) for a per-Gaussian set that must hold ``batch`` poses of ``n`` Gaussians, or None when
@@ -288,9 +275,15 @@ class Pool:
         if self.lists is None or m > self.lists.capacity:
             cap = int(max(m, 1 << 16) * 1.25)
             self.lists = None
+            nd = ti.ndarray
             if parallel:
-                self.lists = TileLists(_torch_zeros(cap, "int32"), cap, _torch_zeros(cap, "int64", False),
-                                       _torch_zeros(cap, "int32", False))
+                ids = nd(ti.i32, (cap,))
+                self.lists = TileLists(ids, cap, nd(ti.i64, (cap,)), ids, nd(ti.i64, (cap,)), nd(ti.i32, (cap,)))
             else:
-                self.lists = TileLists(ti.ndarray(ti.i32, (cap,)), cap)
+                self.lists = TileLists(nd(ti.i32, (cap,)), cap)
         return self.lists
+
+    def radix_scratch(self) -> SortScratch:
+        if self.sort_scratch is None:
+            self.sort_scratch = SortScratch.allocate()
+        return self.sort_scratch

@@ -182,11 +182,9 @@ class Renderer:
                       camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
         parallel = self.sort_mode == "parallel"
         if parallel:
-            def scratch(m: int):
-                lists = self.pool.tile_lists(m, parallel=True)
-                return lists.keys, lists.ids, lists.isect
-
-            totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, B, self.n, tx, tx * ty, scratch, ws.tile_start)
+            totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, rec.offsets, B, self.n, tx, tx * ty,
+                                  lambda m: self.pool.tile_lists(m, parallel=True), self.pool.radix_scratch(),
+                                  ws.tile_start, ws.tile_counts)
         else:
             self._count(rec.ntiles, B, self.n, ws.totals)
             totals = read_rows(ws.totals, B)

@@ -1,0 +1,133 @@
+"""Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
+
+Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20] [--noise 2,1] [--out FILE]
+
+One process, one run. Per case, real photos first:
+- ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
+  (% of the query's median depth, degrees) in random directions;
+- ``lego``: 5 held-out renders (white background), the same priors;
+- ``room`` / ``room_x20``: the demo room (49k Gaussians) and the room densified 20x (975k), 3 photo-degraded
+  queries at 320x240.
+
+Columns: Gaussians, scoring size, one plain render (ms per pose of a 12-pose batch at the final scoring size, on
+the renderer the refinement uses, measured in this process before the queries), seconds per query, queries per
+second, time per query in render units (machine-independent: the refinement's cost in renders of the same map
+and size), renders and derivative passes per query, the prior's and the returned median error (% depth or cm;
+degrees), queries made worse. Sequential (``refine_many``, one query at a time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from real_photos import load_dataset  # noqa: E402
+
+import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
+
+
+def room_case(k: int):
+    """(camera, scene, [(name, truth, image, median depth)], background, unit scale) of the (densified) room."""
+    from hgsloc_plugin.demo.queries import degrade, query_poses
+    from hgsloc_plugin.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.refine.plan import median_depth
+
+    room = make_room_scene()
+    gts = query_poses(3, seed=1)
+    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, QUERY_CAMERA, gts))]
+    scene = densify(room, k) if k > 1 else room
+    qs = [(f"room{i}", g, im, median_depth(scene, QUERY_CAMERA, g)) for i, (g, im) in enumerate(zip(gts, imgs))]
+    return QUERY_CAMERA, scene, qs, (0.0, 0.0, 0.0)
+
+
+def load(case: str):
+    if case.startswith("room"):
+        return room_case(int(case.split("_x")[1]) if "_x" in case else 1)
+    out = load_dataset(case)
+    if out is None:
+        return None
+    cam, scene, qs, bg = out
+    return cam, scene, qs[:5] if case == "lego" else qs, bg
+
+
+def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose) -> float:
+    """One plain render at the final scoring size, ms per pose of a 12-pose batch, on the refinement's renderer."""
+    plan = make_plan(refiner.config, refiner.scene, cam, prior, hp.QueryPrior())
+    renderer = refiner._working_set(plan)
+    poses = [se3_noise(prior, 0.2, 0.01 * plan.depth, np.random.default_rng(s)) for s in range(12)]
+    renderer.render_full(plan.cam_final, poses, refiner.config.background)  # warm-up
+    reps = 5
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        renderer.render_full(plan.cam_final, poses, refiner.config.background)
+    return 1000 * (time.perf_counter() - t0) / (reps * len(poses))
+
+
+def run(case: str, pct: float, deg: float) -> str | None:
+    loaded = load(case)
+    if loaded is None:
+        print(f"skipping {case}: data not found", file=sys.stderr)
+        return None
+    cam, scene, qs, bg = loaded
+    metric = case.startswith("room")
+    unit = "cm" if metric else "% depth"
+    rng = np.random.default_rng(7)
+    priors = [se3_noise(g, deg, pct / 100 * (1.0 if metric else d), rng) for _, g, _, d in qs]
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+    refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
+    ms = render_ms(refiner, cam, priors[0])
+    items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
+    t0 = time.perf_counter()
+    results = refiner.refine_many(items, progress=False)
+    sec = (time.perf_counter() - t0) / len(items)
+    scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
+    e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
+    e1 = np.array([[r.pose.errors_to(g)[0] * s, r.pose.errors_to(g)[1]] for (_, g, _, _), r, s in
+                   zip(qs, results, scale)])
+    worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+    plan = make_plan(refiner.config, scene, cam, priors[0], hp.QueryPrior())
+    row = (f"| {case} | {scene.num_gaussians:,} | {plan.cam_final.width}x{plan.cam_final.height} | {ms:.1f} | "
+           f"{sec:.2f} | {1 / sec:.2f} | {1000 * sec / ms:.0f} | {np.mean([r.renders for r in results]):.0f} | "
+           f"{np.mean([r.derivative_passes for r in results]):.1f} | "
+           f"{np.median(e0[:, 0]):.3f} / {np.median(e0[:, 1]):.2f} {unit} | "
+           f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} |")
+    print(row, flush=True)
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room", "room_x20"])
+    ap.add_argument("--noise", default="2,1", help="prior size: percent of the median depth (cm on the room), "
+                                                   "degrees")
+    ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
+    a = ap.parse_args()
+    pct, deg = (float(x) for x in a.noise.split(","))
+    arch = hp.init()
+    head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg; sequential.", "",
+            "| case | Gaussians | scoring size | render (ms / pose) | s / query | queries / s | render-times / query "
+            "| renders / query | derivative passes | prior median t / R | returned median t / R | worse |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(head), flush=True)
+    rows = [r for r in (run(c, pct, deg) for c in a.cases) if r]
+    if a.out:
+        from hgsloc_plugin.fileio import atomic_write_bytes
+
+        text = ["# Throughput (`benchmarks/throughput.py`)", "",
+                f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows]
+        atomic_write_bytes(a.out, ("\n".join(text) + "\n").encode())
+
+
+if __name__ == "__main__":
+    main()

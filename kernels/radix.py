@@ -1,0 +1,132 @@
+"""Parallel scan and stable LSD radix sort on the device, in Taichi (the GPU's tile sort, ``tile_sort.bin_parallel``).
+
+Both split their input into blocks, one thread per block, and are deterministic: a block's thread walks its
+entries in order, so equal keys keep their input order (the sort is stable) and every result is the same on every
+backend and run. Shapes: ``m`` entries; ``nb`` blocks of ``bs`` entries.
+
+- scan: per-block sums, an exclusive scan of the sums on one thread, then each block's entries from its offset.
+- radix sort of non-negative int64 keys with int32 values, 8 bits a pass: per (digit, block) counts, their
+  exclusive scan in digit-major order (all blocks' entries of digit 0 first, block by block), then each block
+  scatters its entries in order.
+"""
+
+import functools
+
+import taichi as ti
+
+DIGIT_BITS = 8
+DIGITS = 1 << DIGIT_BITS
+MAX_BLOCKS = 1024  # blocks of one radix pass: its counts are [DIGITS, MAX_BLOCKS]
+
+
+def block_size(m: int, blocks: int = MAX_BLOCKS) -> int:
+    """Entries per block so that ``m`` entries fit in at most ``blocks`` blocks."""
+    return max(64, -(-m // blocks))
+
+
+@functools.cache
+def scan_kernels():
+    """(block_sums, scan_sums, block_scan) over the first ``cols`` columns of the first ``rows`` rows of a 2-D
+    int32 array, read row-major as one sequence of ``rows * cols`` values: ``out`` [>= rows * cols + 1] int64
+    receives the exclusive prefix sums and, last, the total."""
+
+    @ti.kernel
+    def block_sums(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
+                   sums: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        n = rows * cols
+        for blk in range((n + bs - 1) // bs):
+            s = ti.i64(0)
+            for j in range(blk * bs, ti.min(n, blk * bs + bs)):
+                s += vals[j // cols, j % cols]
+            sums[blk] = s
+
+    @ti.kernel
+    def scan_sums(sums: ti.types.ndarray(dtype=ti.i64, ndim=1), nb: ti.i32):
+        ti.loop_config(serialize=True)
+        acc = ti.i64(0)
+        for blk in range(nb + 1):
+            v = sums[blk] if blk < nb else ti.i64(0)
+            sums[blk] = acc
+            acc += v
+
+    @ti.kernel
+    def block_scan(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
+                   sums: ti.types.ndarray(dtype=ti.i64, ndim=1), out: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        n = rows * cols
+        nb = (n + bs - 1) // bs
+        for blk in range(nb):
+            acc = sums[blk]
+            for j in range(blk * bs, ti.min(n, blk * bs + bs)):
+                out[j] = acc
+                acc += vals[j // cols, j % cols]
+            if blk == nb - 1:
+                out[n] = acc
+
+    return block_sums, scan_sums, block_scan
+
+
+def exclusive_scan(vals, rows: int, cols: int, sums, out) -> None:
+    """``out[j]`` = the sum of the first ``j`` of the ``rows * cols`` values of ``vals`` [>= rows, >= cols] (int32,
+    row-major), ``out[rows * cols]`` their total; ``sums``: int64 scratch [>= MAX_BLOCKS + 1]."""
+    n = rows * cols
+    if n == 0:
+        raise ValueError("nothing to scan")
+    bs = block_size(n)
+    block_sums, scan_sums, block_scan = scan_kernels()
+    block_sums(vals, rows, cols, bs, sums)
+    scan_sums(sums, (n + bs - 1) // bs)
+    block_scan(vals, rows, cols, bs, sums, out)
+
+
+@functools.cache
+def radix_kernels():
+    """(digit_counts, scatter) of one radix pass."""
+
+    @ti.kernel
+    def digit_counts(keys: ti.types.ndarray(dtype=ti.i64, ndim=1), m: ti.i32, shift: ti.i32, bs: ti.i32,
+                     nb: ti.i32, counts: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        for d, blk in ti.ndrange(DIGITS, nb):
+            counts[d, blk] = 0
+        for blk in range(nb):
+            for i in range(blk * bs, ti.min(m, blk * bs + bs)):
+                d = ti.cast((keys[i] >> shift) & (DIGITS - 1), ti.i32)
+                counts[d, blk] += 1
+
+    @ti.kernel
+    def scatter(keys_in: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_in: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                m: ti.i32, shift: ti.i32, bs: ti.i32, nb: ti.i32, offsets: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                keys_out: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+        for blk in range(nb):
+            for i in range(blk * bs, ti.min(m, blk * bs + bs)):
+                k = keys_in[i]
+                j = ti.cast((k >> shift) & (DIGITS - 1), ti.i32) * nb + blk
+                pos = offsets[j]
+                offsets[j] = pos + 1
+                keys_out[pos] = k
+                ids_out[pos] = ids_in[i]
+
+    return digit_counts, scatter
+
+
+def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets, sums):
+    """Sort the first ``m`` (key, id) pairs by key, stably, on their lowest ``bits`` bits (keys non-negative).
+
+    Args:
+        keys / ids: int64 / int32 [>= m], the input; keys_tmp / ids_tmp: the same sizes, scratch.
+        counts: int32 [DIGITS, MAX_BLOCKS]; offsets: int64 [DIGITS * MAX_BLOCKS + 1]; sums: int64 [MAX_BLOCKS + 1].
+
+    Returns:
+        (keys, ids): the buffers that hold the sorted pairs (the inputs or the scratch ones).
+    """
+    if m == 0:
+        return keys, ids
+    bs = block_size(m)
+    nb = -(-m // bs)
+    digit_counts, scatter = radix_kernels()
+    src, dst = (keys, ids), (keys_tmp, ids_tmp)
+    for shift in range(0, bits, DIGIT_BITS):
+        digit_counts(src[0], m, shift, bs, nb, counts)
+        exclusive_scan(counts, DIGITS, nb, sums, offsets)
+        scatter(src[0], src[1], m, shift, bs, nb, offsets, dst[0], dst[1])
+        src, dst = dst, src
+    return src

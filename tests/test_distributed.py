@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 ray = pytest.importorskip("ray", reason='Ray not installed (pip install "hgsloc-plugin[ray]")')
+pytestmark = pytest.mark.slow  # worker processes start Ray and Taichi: seconds each
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.batch import Query  # noqa: E402

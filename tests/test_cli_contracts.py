@@ -178,3 +178,31 @@ def test_transforms_json_reads_as_poses_and_intrinsics_and_writes_back(tmp_path)
     p = hgsloc("evaluate", "--poses", fox / "transforms.json", "--gt", fox / "gt.txt", "--json")
     rep = json.loads(p.stdout)
     assert p.returncode == 0 and rep["n"] == 50 and rep["missing"] == 0 and rep["median_translation_cm"] < 1e-3
+
+
+@pytest.mark.slow
+def test_refine_and_check_read_a_transforms_json(tiny_case, tmp_path):  # noqa: F811
+    """A NeRF-style transforms.json of the room's priors (camera-to-world, OpenGL axes, shared intrinsics) is
+    checked, refined and written back as transforms.json; the refined frames are closer to the truth."""
+    from hgsloc_plugin.adapters.nerf import pose_to_c2w_gl
+
+    d = tiny_case
+    ace, gt = read_poses(d / "ace.txt"), read_poses(d / "gt.txt")
+    frames = [{"file_path": f"./images/{n.replace('seq-01-', 'seq-01/')}", "transform_matrix": pose_to_c2w_gl(ace[n]),
+               "note": k} for k, n in enumerate(ace)]
+    src = tmp_path / "transforms.json"
+    src.write_text(json.dumps({"fl_x": 90.0, "fl_y": 90.0, "cx": 64.0, "cy": 48.0, "w": 128, "h": 96,
+                               "frames": frames}))
+    c = hgsloc("check", "--scene", d / "scene.ply", "--poses", src, "--images", d, "--intrinsics", src)
+    assert c.returncode == 0, c.stdout + c.stderr
+    out = tmp_path / "refined.json"
+    p = hgsloc("refine", "--scene", d / "scene.ply", "--poses", src, "--images", d, "--intrinsics", src, "--out", out,
+               "--config", "fast", "--quiet")
+    assert p.returncode == 0, p.stderr
+    a, b = json.loads(src.read_text()), json.loads(out.read_text())
+    assert [{k: v for k, v in f.items() if k != "transform_matrix"} for f in a["frames"]] == \
+        [{k: v for k, v in f.items() if k != "transform_matrix"} for f in b["frames"]]
+    refined = read_poses(out)
+    assert refined.dialect == "transforms_json"
+    for n, n_gt in zip(refined, gt):
+        assert refined[n].errors_to(gt[n_gt])[0] < read_poses(src)[n].errors_to(gt[n_gt])[0]

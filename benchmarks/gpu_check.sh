@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The checks that need a GPU, in one run: the kernel tests on CUDA (against the PyTorch reference and the serial
-# sort), the same refinements recorded on CUDA and on the CPU and compared, and the map-scale table on CUDA.
+# sort; the parallel sort is Taichi's radix sort), the same refinements recorded on CUDA and on the CPU and
+# compared, the throughput table on CUDA (queries per second, render-times per query) and the map-scale table.
 # Usage (the package installed with its test extras, ../shared/data beside the repository):
 #   bash benchmarks/gpu_check.sh [OUT_DIR]        (about 5 minutes on an H100)
 set -u -o pipefail
@@ -15,6 +16,7 @@ grep -q " passed" "$out/tests_cuda.log" && ! grep -qE " (failed|error)" "$out/te
 HGSLOC_ARCH=cuda python benchmarks/backends.py --out "$out/cuda.json" || status=1
 HGSLOC_ARCH=cpu python benchmarks/backends.py --out "$out/cpu.json" || status=1
 python benchmarks/backends.py --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md" || status=1
+HGSLOC_ARCH=cuda python benchmarks/throughput.py --out "$out/throughput_cuda.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/map_scale.py --paths "whole map, search" "working set, gradient first" \
     --out "$out/map_scale_cuda.md" || status=1
 exit $status

@@ -253,3 +253,29 @@ def test_backend_arch_validation(monkeypatch):
     monkeypatch.setenv("HGSLOC_ARCH", "bogus")
     with pytest.raises(ValueError, match="HGSLOC_ARCH"):
         backend.init()
+
+
+@pytest.mark.slow
+def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
+    """``RefineConfig.wide_step_pixels`` (opt-in): a 30 cm / 8 deg prior the default refuses (beyond its 32 px trust
+    region) is refined to the truth by the wide levels; a query the gradient route already answers pays nothing."""
+    from hgsloc_plugin.demo.queries import degrade, query_poses
+    from hgsloc_plugin.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.noise import se3_noise
+
+    scene, cam = make_room_scene(), QUERY_CAMERA
+    gts = query_poses(2, seed=1)
+    imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
+    rng = np.random.default_rng(308)
+    priors = [se3_noise(g, 8.0, 0.3, rng) for g in gts]
+    plain, wide = hp.HGSLocPlugin(scene), hp.HGSLocPlugin(scene, hp.RefineConfig(wide_step_pixels=(16.0, 8.0)))
+    a, b = plain.refine(imgs[1], cam, priors[1]), wide.refine(imgs[1], cam, priors[1])
+    assert not a.accepted and a.route == "search"
+    assert b.accepted and b.route == "wide search" and b.pose.errors_to(gts[1])[0] < 0.01
+    assert b.max_shift > 3 * a.max_shift  # the wide levels' own trust region
+    a, b = plain.refine(imgs[0], cam, priors[0]), wide.refine(imgs[0], cam, priors[0])
+    assert a.accepted and a.route == b.route == "gradient" and a.renders == b.renders
+    assert np.array_equal(a.pose.as_array(), b.pose.as_array())
+    with pytest.raises(ValueError, match="wide_step_pixels"):
+        hp.RefineConfig(wide_step_pixels=(16.0, -8.0))

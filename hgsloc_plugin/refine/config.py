@@ -45,6 +45,9 @@ class RefineConfig:
             ``polish_max_side`` with at most ``polish_iterations`` derivative passes; cs metric only.
         gradient_first: try the gradient route (the polish alone) first; search only when its pose is refused.
         search: run the lattice search; False with ``polish``: gradient only.
+        wide_step_pixels: image motion of extra coarse levels for a wider search, run (before the usual levels,
+            with its automatic trust region ``trust_steps`` times the first of them) only when the search's pose is
+            refused; () (default): off. E.g. (16, 8): priors 30-100 px of image motion off.
         mask_alpha: ignore pixels whose rendered alpha is below this.
         background: RGB behind the Gaussians (the map's training background).
         resize_query: resize a query whose size differs from its camera's instead of raising.
@@ -81,6 +84,7 @@ class RefineConfig:
     polish_iterations: int = 16
     polish_max_side: int = 320
     search: bool = True
+    wide_step_pixels: tuple[float, ...] = ()
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False
@@ -122,6 +126,9 @@ class RefineConfig:
         object.__setattr__(self, "levels", tuple(tuple(float(x) for x in lv) for lv in self.levels))
         if self.level_pixels is not None:
             object.__setattr__(self, "level_pixels", tuple(float(x) for x in self.level_pixels))
+        if not all(x > 0 and math.isfinite(x) for x in self.wide_step_pixels):
+            raise ValueError(f"wide_step_pixels must be positive numbers, got {self.wide_step_pixels!r}")
+        object.__setattr__(self, "wide_step_pixels", tuple(float(x) for x in self.wide_step_pixels))
         object.__setattr__(self, "background", tuple(float(x) for x in self.background))
 
     @staticmethod

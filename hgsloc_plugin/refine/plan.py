@@ -63,9 +63,10 @@ class Plan:
 
 
 def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse_pose: Pose,
-              prior: QueryPrior) -> Plan:
+              prior: QueryPrior, step_pixels: tuple[float, ...] | None = None) -> Plan:
     """The plan of one query: ``prior``'s settings first, then ``config``'s, then the automatic trust region
-    (``trust_steps`` coarsest steps; half the depth and 10 degrees for the paper's raw-component steps)."""
+    (``trust_steps`` coarsest steps; half the depth and 10 degrees for the paper's raw-component steps).
+    ``step_pixels``: the automatic levels' image motion instead of ``config.step_pixels`` (the wide search's)."""
     cfg = config
     cam_final = camera.with_max_side(cfg.score_max_side)
     coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
@@ -78,7 +79,7 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
         levels = list(cfg.levels)
     else:
         f = 0.5 * (cam_final.fx + cam_final.fy)
-        levels = [(math.degrees(px / f), px * depth / f) for px in cfg.step_pixels]
+        levels = [(math.degrees(px / f), px * depth / f) for px in (step_pixels or cfg.step_pixels)]
     if cfg.neighbourhood == "paper":  # raw-component steps: no image-motion scale
         auto_shift, auto_rotation = 0.5 * depth, 10.0
     else:

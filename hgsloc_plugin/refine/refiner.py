@@ -6,6 +6,7 @@ each judged by the acceptance rule (``trust.judge``) -> result (``result.py``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -25,7 +26,7 @@ from .plan import Plan, make_plan
 from .result import RefineResult
 from .routes import Candidate, QueryContext, gradient_route, search_route
 from .scorer import Scorer
-from .trust import Verdict, judge
+from .trust import PRIOR_MORE_PRECISE, Verdict, judge
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -94,6 +95,14 @@ class Refiner:
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
         if not tried or not tried[-1][1].ends_gradient_route():
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
+        if (cfg.wide_step_pixels and cfg.search and cfg.neighbourhood == "lattice" and not cfg.levels
+                and not tried[-1][1].accepted and tried[-1][1].rejected != PRIOR_MORE_PRECISE):
+            wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.wide_step_pixels + cfg.step_pixels)
+            ctx = dataclasses.replace(ctx, plan=wide)
+            cand = search_route(ctx)
+            cand.route = "wide search"
+            logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
+            tried.append(self._judged(ctx, cand))
         return _result(ctx, tried, time.perf_counter() - t0)
 
     def _judged(self, ctx: QueryContext, cand: Candidate) -> tuple[Candidate, Verdict]:
@@ -156,8 +165,8 @@ def _result(ctx: QueryContext, tried: list[tuple[Candidate, Verdict]], seconds: 
         assessment=verdict.assessment, fused=verdict.fused, polish=polish,
         expansions=sum(c.expansions for c, _ in tried), history=[h for c, _ in tried for h in c.history],
         levels=[lv for c, _ in tried for lv in c.levels],
-        route="gradient" if cand.route == "gradient" else "search",
-        gradient_rejected=tried[0][1].rejected if len(tried) > 1 else None,
+        route=cand.route, gradient_rejected=tried[0][1].rejected if len(tried) > 1 and tried[0][0].route == "gradient"
+        else None,
         max_shift=plan.max_shift, max_rotation_deg=plan.max_rotation_deg,
         prior_error=math.nan if plan.prior_error is None else plan.prior_error,
         prior_error_deg=math.nan if plan.prior_error_deg is None else plan.prior_error_deg,

@@ -36,8 +36,9 @@ class RefineResult:
         expansions / renders: search expansions and plain renders (the polish's line search included);
             levels: per-level details; history: best cost after each expansion; seconds: wall time.
         working_set / working_set_selections: Gaussians rendered (the largest selection) and selections made.
-        route: "gradient" (the polish alone from the coarse pose) or "search" (lattice search + polish);
-            gradient_rejected: why the gradient route's pose was refused before the search ran.
+        route: "gradient" (the polish alone from the coarse pose), "search" (lattice search + polish) or "wide
+            search" (``RefineConfig.wide_step_pixels``, after a refused search); gradient_rejected: why the
+            gradient route's pose was refused before the search ran.
         polish: the Levenberg-Marquardt stages run, every route's (``PolishStats``).
         error: set when the query failed (then ``pose`` is the coarse pose).
     """

@@ -48,7 +48,7 @@ def test_check_passes_true_poses_and_names_each_convention_error(name):
     bg = (1.0, 1.0, 1.0) if name == "lego" else (0.0, 0.0, 0.0)
 
     def run(poses):
-        return check_poses(scene, poses, lambda n: d / "queries" / n, lambda n, w, h: cam, sample=6, background=bg)
+        return check_poses(scene, poses, lambda n: d / "queries" / n, lambda n, w, h: cam, sample=4, background=bg)
 
     ok = run(gt)
     assert ok.verdict == "ok" and ok.ok, ok.message()

@@ -90,10 +90,10 @@ def from_cameras_json(path) -> IntrinsicsFn:
 def from_query_list(path, *, allow_distortion: bool = False) -> IntrinsicsFn:
     """Cameras from HLoc's query list (or a NeRF ``transforms.json``, or a trainer's ``cameras.json``), rescaled to
     the image's actual size."""
-    from .nerf import is_transforms_json, transforms_intrinsics
+    from .nerf import is_transforms_json, transforms_cameras
 
     if is_transforms_json(path):
-        return transforms_intrinsics(path, allow_distortion=allow_distortion)
+        return _lookup(transforms_cameras(path, allow_distortion=allow_distortion), path, "frame")
     if str(path).lower().endswith(".json"):
         return from_cameras_json(path)
     return _lookup(parse_query_list(path, allow_distortion=allow_distortion), path, "query")

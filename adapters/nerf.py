@@ -106,10 +106,10 @@ def write_transforms_json(path, poses, like: PoseFile) -> Path:
     return path
 
 
-def transforms_intrinsics(path, *, allow_distortion: bool = False):
-    """(name, width, height) -> Camera from the file's shared or per-frame intrinsics, scaled to the image's size
-    (the principal point too); a non-zero distortion coefficient is refused unless ``allow_distortion`` (the images
-    are already undistorted)."""
+def transforms_cameras(path, *, allow_distortion: bool = False) -> dict[str, Camera]:
+    """canonical image name -> Camera at the size the file gives (``w``, ``h``), from its shared or per-frame
+    intrinsics; a non-zero distortion coefficient is refused unless ``allow_distortion`` (the images are already
+    undistorted). ``intrinsics.from_query_list`` scales them to each image's size."""
     path = Path(path)
     data = _load(path)
     table = {}
@@ -135,14 +135,4 @@ def transforms_intrinsics(path, *, allow_distortion: bool = False):
                              "Undistort the images first and pass --allow-distortion (allow_distortion=True)")
         table[canonical_name(frame_name(fr))] = Camera(int(round(w)), int(round(h)), fx, fy,
                                                        float(v.get("cx", w / 2)), float(v.get("cy", h / 2)))
-
-    def get(name, width, height):
-        cam = table.get(canonical_name(name))
-        if cam is None:
-            raise KeyError(f"{path}: no frame for image {name!r}")
-        if (cam.width, cam.height) == (width, height):
-            return cam
-        sx, sy = width / cam.width, height / cam.height
-        return Camera(width, height, cam.fx * sx, cam.fy * sy, cam.cx * sx, cam.cy * sy)
-
-    return get
+    return table

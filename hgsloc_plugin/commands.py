@@ -55,12 +55,13 @@ def cmd_refine(args) -> int:
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
     scene, pf = inputs = _inputs(args)
+    intrinsics = _intrinsics(args)  # read once (a COLMAP model, a query list) for the check and the refinement
     if not args.skip_check:  # refining poses in another frame or convention would return nonsense
-        rep = _check(args, 4, inputs=inputs)
+        rep = _check(args, 4, inputs=inputs, intrinsics=intrinsics)
         if not rep.agrees:
             raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
                              "refines anyway)")
-    rep = refine_pose_file(scene, pf, Path(args.images), _intrinsics(args), Path(args.out),
+    rep = refine_pose_file(scene, pf, Path(args.images), intrinsics, Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
                            workers=args.workers, ray_address=args.ray_address,
@@ -102,13 +103,14 @@ def _inputs(args):
     return GaussianScene.from_ply(args.scene), read_poses(args.poses)
 
 
-def _check(args, sample: int, figures=None, inputs=None):
+def _check(args, sample: int, figures=None, inputs=None, intrinsics=None):
     from .adapters.names import resolve_image
     from .check import check_poses
 
     scene, pf = inputs or _inputs(args)
     images = Path(args.images)
-    return check_poses(scene, {n: pf[n] for n in pf}, lambda n: resolve_image(n, images), _intrinsics(args),
+    return check_poses(scene, {n: pf[n] for n in pf}, lambda n: resolve_image(n, images),
+                       intrinsics or _intrinsics(args),
                        sample=sample, background=(1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0),
                        figures=figures)
 

@@ -376,6 +376,35 @@ def test_line_search_extends_past_the_longest_multiple(monkeypatch):
     assert np.linalg.norm(pose_r.centre() - c0) <= 0.01
 
 
+def test_a_retry_after_a_failed_trial_is_materially_shorter():
+    """A gradient that points uphill makes every trial fail. Each retry is damped until its image motion is at most
+    RETRY_SHRINK of the failed one's (ten times a tiny damping would repeat the same trial), and the polish
+    returns the start."""
+    from hgsloc_plugin.refine.polish import RETRY_SHRINK, step_pixels
+
+    class Uphill(_QuadraticCost):
+        def __init__(self, target):
+            super().__init__(target, 1.0)
+            self.tried = []
+
+        def window_cost(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.tried.append(poses[0])  # the multiple 1 of each line search
+            return super().window_cost(camera, poses, qstats, background, mask_alpha)
+
+        def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            c, g, H = super().pose_gradient(camera, poses, qstats, background, mask_alpha)
+            return c, -g, H
+
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([3.0, -2.0, 1.0]), [0.2, 0.0, 0.1])
+    fake = Uphill(target)
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=10, allowed=lambda p: True, max_failures=4)
+    assert pose is start and st.passes == 1 and st.accepted_steps == 0 and len(fake.tried) >= 3, st
+    motions = [step_pixels(start.offset_in_camera(T), 50.0, 2.0) for T in fake.tried]
+    assert all(b <= RETRY_SHRINK * a * (1 + 1e-9) for a, b in zip(motions, motions[1:])), motions
+
+
 @pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
 def test_derivative_pass_tiling_changes_no_number(name):
     """The derivative pass bins at RasterConfig.grad_tile_size (8): each pixel walks a shorter list holding the

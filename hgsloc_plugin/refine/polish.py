@@ -4,17 +4,20 @@ Each iteration is one derivative pass (``Renderer.pose_gradient``: the cost, its
 Hessian ``JtJ`` in the camera-frame increment ``xi = (w, v)``) at a trial pose. The step solves ``(JtJ + lambda
 diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no common unit); a trial is kept only when
 its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks; otherwise ``lambda`` grows
-and the step is re-solved from the same system. It stops on a step below ``min_step_px`` of image motion (times
-the multiple the line search last needed) or a kept step that lowers the cost by less than ``MIN_DECREASE`` of
-it, after ``max_failures`` rejected trials in a row, or after ``iterations`` passes. A trial outside the trust
-region is not rendered: the damping grows until the step fits (or the polish stops, "trust region").
+and the step is re-solved from the same system, damped until its image motion is at most ``RETRY_SHRINK`` of the
+failed one's (a retry barely shorter fails again: near convergence ``lambda`` is tiny and ten times it changes
+nothing). It stops on a step below ``min_step_px`` of image motion (times the multiple the line search last
+needed) or a kept step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected
+trials in a row, or after ``iterations`` passes. A trial outside the trust region is not rendered: the damping
+grows until the step fits (or the polish stops, "trust region").
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
 lowers the cost the trial fails without a derivative pass. When the longest is the best, the search goes on
 (``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the trust region) while the
 cost falls, and the convergence test scales the next step by the multiple the last one needed (a Gauss-Newton
-step far too short is not convergence; ``benchmarks/defaults.md``).
+step far too short is not convergence; ``benchmarks/defaults.md``). A stage that starts near its minimum scores
+``FINE_LINE_SEARCH`` (1, 2) instead: there four times the step rarely wins (``benchmarks/throughput.md``).
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ MAX_OUTSIDE = 12  # trials outside the trust region (each only raises the dampin
 LINE_SEARCH = (1.0, 2.0, 4.0)  # multiples of the step scored with the cost alone before a derivative pass
 EXTEND = (2.0, 4.0)  # when the longest multiple is the best, the next ones (x its length), one batch at a time
 MAX_MULTIPLE = 64.0
+FINE_LINE_SEARCH = (1.0, 2.0)  # for a stage that starts near its minimum (after a coarser stage or the search)
+RETRY_SHRINK = 0.5  # after a failed trial, the next is at most this fraction of its image motion
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
 STAGE_STEP_PX = 0.25
@@ -82,7 +87,7 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
 
 def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-           min_step_px: float = MIN_STEP_PX, max_failures: int = 3,
+           min_step_px: float = MIN_STEP_PX, max_failures: int = 3, min_decrease: float = MIN_DECREASE,
            line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:
     """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
 
@@ -112,6 +117,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
     lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
+    retry_limit = math.inf  # image motion the next trial must stay under (after a failed one)
     while stats.passes < iterations:
         d = np.diag(H)
         A = H + lam * np.diag(np.maximum(d, 1e-12 * max(float(d.max()), 1e-30)))
@@ -126,6 +132,12 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         if motion * reach < min_step_px:  # reach: the multiple the last kept step needed (GN steps run short)
             stats.stopped = "converged"
             break
+        if motion > retry_limit:  # a retry barely shorter than the failed trial would fail again: more damping
+            lam = min(lam * 10.0, LAMBDA_MAX)
+            if lam >= LAMBDA_MAX:
+                stats.stopped = "no decrease"
+                break
+            continue
         trial = pose.perturbed_in_camera(xi[:3], xi[3:])
         if not allowed(trial):  # shorten the step (more damping) until it stays in the trust region
             lam = min(lam * 10.0, LAMBDA_MAX)
@@ -140,6 +152,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             j = int(np.argmin(lc))
             if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
                 lam = min(lam * 10.0, LAMBDA_MAX)
+                retry_limit = RETRY_SHRINK * motion
                 failures += 1
                 if failures >= max_failures:
                     stats.stopped = "no decrease"
@@ -161,17 +174,18 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
-            negligible = cost - c2 < MIN_DECREASE * cost
+            negligible = cost - c2 < min_decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.accepted_steps += 1
             stats.step_px = motion
             lam = max(lam * 0.1, LAMBDA_MIN)
-            failures = 0
+            failures, retry_limit = 0, math.inf
             if negligible:
                 stats.stopped = "converged"
                 break
         else:
             lam = min(lam * 10.0, LAMBDA_MAX)
+            retry_limit = RETRY_SHRINK * motion
             failures += 1
             if failures >= max_failures:
                 stats.stopped = "no decrease"

@@ -20,7 +20,7 @@ from ..render import RendererLike
 from ..working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan
-from .polish import MIN_STEP_PX, STAGE_STEP_PX, PolishStats, polish
+from .polish import FINE_LINE_SEARCH, LINE_SEARCH, MIN_STEP_PX, STAGE_STEP_PX, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 
@@ -132,7 +132,9 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
 
 def _polish(ctx: QueryContext, cand: Candidate, search: bool) -> Pose:
     """Levenberg-Marquardt on the cs cost (``refine/polish.py``) from ``cand.pose`` at the polish size; on the
-    gradient route, coarse to fine over the coarse, final and polish sizes. Appends to ``cand.polish``."""
+    gradient route, coarse to fine over the coarse, final and polish sizes. A stage that starts near its minimum
+    (after a coarser stage or the search) scores the shorter line search ``FINE_LINE_SEARCH``. Appends to
+    ``cand.polish``."""
     cfg, plan = ctx.config, ctx.plan
     cams = [plan.cam_polish]
     if not search:
@@ -141,8 +143,10 @@ def _polish(ctx: QueryContext, cand: Candidate, search: bool) -> Pose:
     for i, cam in enumerate(cams):
         q = ctx.renderer.upload_window_query(resize_image(ctx.image, cam.width, cam.height))
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
+        near = search or i > 0
         pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
                              allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,
-                             min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX)
+                             min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX,
+                             line_search=FINE_LINE_SEARCH if near else LINE_SEARCH)
         cand.polish.append(stats)
     return pose

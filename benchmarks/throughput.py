@@ -9,18 +9,22 @@ One process, one run. Per case, real photos first:
 - ``room`` / ``room_x20``: the demo room (49k Gaussians) and the room densified 20x (975k), 3 photo-degraded
   queries at 320x240.
 
-Columns: Gaussians, scoring size, one plain render (ms per pose of a 12-pose batch at the final scoring size, on
-the renderer the refinement uses, measured in this process before the queries), seconds per query, queries per
-second, time per query in render units (machine-independent: the refinement's cost in renders of the same map
-and size), renders and derivative passes per query, the prior's and the returned median error (% depth or cm;
-degrees), queries made worse. Sequential (``refine_many``, one query at a time).
+Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, median of 15, on
+the renderer the refinement uses, measured in this process before the queries) and per pose of a 12-pose batch,
+seconds per query, queries per second, time per query in render-times (machine-independent: the refinement's
+cost in single plain renders of the same map and size), renders and derivative passes per query, the prior's and
+the returned median error (% depth or cm; degrees), queries made worse. Sequential (``refine_many``, one query
+at a time). A second table splits each query's time (render-times) by stage: the polish per scoring size, the
+acceptance rule (its 12 one-pixel moves), the lattice search, and the rest (plan, working set, query upload).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -61,20 +65,57 @@ def load(case: str):
     return cam, scene, qs[:5] if case == "lego" else qs, bg
 
 
-def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose) -> float:
-    """One plain render at the final scoring size, ms per pose of a 12-pose batch, on the refinement's renderer."""
+def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose) -> tuple[float, float]:
+    """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of 15;
+    ms per pose of a 12-pose batch)."""
     plan = make_plan(refiner.config, refiner.scene, cam, prior, hp.QueryPrior())
     renderer = refiner._working_set(plan)
     poses = [se3_noise(prior, 0.2, 0.01 * plan.depth, np.random.default_rng(s)) for s in range(12)]
-    renderer.render_full(plan.cam_final, poses, refiner.config.background)  # warm-up
+    bg = refiner.config.background
+    renderer.render_full(plan.cam_final, poses, bg)  # warm-up
+    single = []
+    for p in poses + poses[:3]:
+        t0 = time.perf_counter()
+        renderer.render_full(plan.cam_final, [p], bg)
+        single.append(time.perf_counter() - t0)
     reps = 5
     t0 = time.perf_counter()
     for _ in range(reps):
-        renderer.render_full(plan.cam_final, poses, refiner.config.background)
-    return 1000 * (time.perf_counter() - t0) / (reps * len(poses))
+        renderer.render_full(plan.cam_final, poses, bg)
+    return 1000 * float(np.median(single)), 1000 * (time.perf_counter() - t0) / (reps * len(poses))
 
 
-def run(case: str, pct: float, deg: float) -> str | None:
+@contextlib.contextmanager
+def stage_clock():
+    """Seconds spent per stage while inside: {"polish WxH": s, "rule": s, "search": s} (wraps the route functions
+    the refiner calls; restored on exit)."""
+    from hgsloc_plugin.refine import refiner as refiner_mod
+    from hgsloc_plugin.refine import routes
+
+    spent: dict[str, float] = defaultdict(float)
+
+    def timed(fn, key):
+        def wrapper(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[key(args) if callable(key) else key] += time.perf_counter() - t0
+        return wrapper
+
+    saved = [(routes, "polish"), (routes, "_search_levels"), (refiner_mod, "judge")]
+    originals = [getattr(m, n) for m, n in saved]
+    routes.polish = timed(routes.polish, lambda a: f"polish {a[1].width}x{a[1].height}")
+    routes._search_levels = timed(routes._search_levels, "search")
+    refiner_mod.judge = timed(refiner_mod.judge, "rule")
+    try:
+        yield spent
+    finally:
+        for (m, n), f in zip(saved, originals):
+            setattr(m, n, f)
+
+
+def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
     loaded = load(case)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -86,24 +127,30 @@ def run(case: str, pct: float, deg: float) -> str | None:
     priors = [se3_noise(g, deg, pct / 100 * (1.0 if metric else d), rng) for _, g, _, d in qs]
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
-    ms = render_ms(refiner, cam, priors[0])
+    ms, ms_batch = render_ms(refiner, cam, priors[0])
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
-    t0 = time.perf_counter()
-    results = refiner.refine_many(items, progress=False)
-    sec = (time.perf_counter() - t0) / len(items)
+    with stage_clock() as spent:
+        t0 = time.perf_counter()
+        results = refiner.refine_many(items, progress=False)
+        sec = (time.perf_counter() - t0) / len(items)
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
     e1 = np.array([[r.pose.errors_to(g)[0] * s, r.pose.errors_to(g)[1]] for (_, g, _, _), r, s in
                    zip(qs, results, scale)])
     worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
     plan = make_plan(refiner.config, scene, cam, priors[0], hp.QueryPrior())
-    row = (f"| {case} | {scene.num_gaussians:,} | {plan.cam_final.width}x{plan.cam_final.height} | {ms:.1f} | "
+    row = (f"| {case} | {scene.num_gaussians:,} | {plan.cam_final.width}x{plan.cam_final.height} | {ms:.1f} / "
+           f"{ms_batch:.1f} | "
            f"{sec:.2f} | {1 / sec:.2f} | {1000 * sec / ms:.0f} | {np.mean([r.renders for r in results]):.0f} | "
            f"{np.mean([r.derivative_passes for r in results]):.1f} | "
            f"{np.median(e0[:, 0]):.3f} / {np.median(e0[:, 1]):.2f} {unit} | "
            f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} |")
     print(row, flush=True)
-    return row
+    unit = len(items) * ms / 1000  # seconds of one render, per query
+    parts = {k: v / unit for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
+    rest = 1000 * sec / ms - sum(parts.values())
+    split = f"| {case} | " + ", ".join(f"{k} {v:.0f}" for k, v in parts.items()) + f", rest {rest:.0f} |"
+    return row, split
 
 
 def main() -> None:
@@ -116,16 +163,24 @@ def main() -> None:
     pct, deg = (float(x) for x in a.noise.split(","))
     arch = hp.init()
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg; sequential.", "",
-            "| case | Gaussians | scoring size | render (ms / pose) | s / query | queries / s | render-times / query "
+            "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
+            "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    rows = [r for r in (run(c, pct, deg) for c in a.cases) if r]
+    done = [r for r in (run(c, pct, deg) for c in a.cases) if r]
+    rows = [r for r, _ in done]
+    split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
+             *(s for _, s in done)]
+    print("\n".join(split), flush=True)
     if a.out:
         from hgsloc_plugin.fileio import atomic_write_bytes
 
         text = ["# Throughput (`benchmarks/throughput.py`)", "",
-                f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows]
+                f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows, *split]
+        old = a.out.read_text() if a.out.exists() else ""
+        if "\n## Notes" in old:  # the written discussion below the tables is kept
+            text += ["", old[old.index("\n## Notes") + 1:].rstrip("\n")]
         atomic_write_bytes(a.out, ("\n".join(text) + "\n").encode())
 
 

@@ -257,8 +257,9 @@ def test_backend_arch_validation(monkeypatch):
 
 @pytest.mark.slow
 def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
-    """``RefineConfig.wide_step_pixels`` (opt-in): a 30 cm / 8 deg prior the default refuses (beyond its 32 px trust
-    region) is refined to the truth by the wide levels; a query the gradient route already answers pays nothing."""
+    """``RefineConfig.wide_step_pixels`` (default (16, 8)): a 30 cm / 8 deg prior the usual search refuses (beyond
+    its 32 px trust region) is refined to the truth by the wide levels; a query the gradient route already answers
+    pays nothing."""
     from hgsloc_plugin.demo.queries import degrade, query_poses
     from hgsloc_plugin.demo.run import QUERY_CAMERA
     from hgsloc_plugin.demo.scene import make_room_scene
@@ -269,7 +270,7 @@ def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
     imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
     rng = np.random.default_rng(308)
     priors = [se3_noise(g, 8.0, 0.3, rng) for g in gts]
-    plain, wide = hp.HGSLocPlugin(scene), hp.HGSLocPlugin(scene, hp.RefineConfig(wide_step_pixels=(16.0, 8.0)))
+    plain, wide = hp.HGSLocPlugin(scene, hp.RefineConfig(wide_step_pixels=())), hp.HGSLocPlugin(scene)
     a, b = plain.refine(imgs[1], cam, priors[1]), wide.refine(imgs[1], cam, priors[1])
     assert not a.accepted and a.route == "search"
     assert b.accepted and b.route == "wide search" and b.pose.errors_to(gts[1])[0] < 0.01

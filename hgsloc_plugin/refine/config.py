@@ -47,7 +47,7 @@ class RefineConfig:
         search: run the lattice search; False with ``polish``: gradient only.
         wide_step_pixels: image motion of extra coarse levels for a wider search, run (before the usual levels,
             with its automatic trust region ``trust_steps`` times the first of them) only when the search's pose is
-            refused; () (default): off. E.g. (16, 8): priors 30-100 px of image motion off.
+            refused: priors 30-100 px of image motion off. Default (16, 8); (): off.
         mask_alpha: ignore pixels whose rendered alpha is below this.
         background: RGB behind the Gaussians (the map's training background).
         resize_query: resize a query whose size differs from its camera's instead of raising.
@@ -84,7 +84,7 @@ class RefineConfig:
     polish_iterations: int = 16
     polish_max_side: int = 320
     search: bool = True
-    wide_step_pixels: tuple[float, ...] = ()
+    wide_step_pixels: tuple[float, ...] = (16.0, 8.0)
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False

@@ -26,7 +26,7 @@ from .plan import Plan, make_plan
 from .result import RefineResult
 from .routes import Candidate, QueryContext, gradient_route, search_route
 from .scorer import Scorer
-from .trust import PRIOR_MORE_PRECISE, Verdict, judge
+from .trust import Verdict, judge
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -91,12 +91,12 @@ class Refiner:
         tried: list[tuple[Candidate, Verdict]] = []
         if cfg.gradient_first and cfg.search and cfg.polishes and cfg.acceptance == "trust":
             tried.append(self._judged(ctx, gradient_route(ctx)))
-            if not tried[-1][1].ends_gradient_route():
+            if not tried[-1][1].ends_refinement():
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
-        if not tried or not tried[-1][1].ends_gradient_route():
+        if not tried or not tried[-1][1].ends_refinement():
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
         if (cfg.wide_step_pixels and cfg.search and cfg.neighbourhood == "lattice" and not cfg.levels
-                and not tried[-1][1].accepted and tried[-1][1].rejected != PRIOR_MORE_PRECISE):
+                and not tried[-1][1].ends_refinement()):
             wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.wide_step_pixels + cfg.step_pixels)
             ctx = dataclasses.replace(ctx, plan=wide)
             cand = search_route(ctx)

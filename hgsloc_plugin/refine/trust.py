@@ -41,7 +41,7 @@ MIN_SIGNIFICANCE = 1.0
 #: per-axis standard deviation of a prior, in units of its expected (median) error
 PRIOR_SPREAD = 1.3
 MIN_SHARPNESS = 0.02
-MIN_ALIGNMENT = 0.005
+MIN_ALIGNMENT = 0.011
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
 UNCERTAINTY_SCALE = 0.1
@@ -205,9 +205,9 @@ class Verdict:
     def accepted(self) -> bool:
         return self.rejected is None
 
-    def ends_gradient_route(self) -> bool:
-        """Whether no search should follow this verdict on the gradient route's candidate: it was accepted, the
-        prior is more precise than the fusion near it, or the coarse pose sits in a sharp, aligned minimum."""
+    def ends_refinement(self) -> bool:
+        """Whether no (wider) search should follow this verdict: the candidate was accepted, the prior is more
+        precise than the fusion near it, or the coarse pose sits in a sharp, aligned minimum."""
         return (self.accepted or self.rejected == PRIOR_MORE_PRECISE
                 or (self.assessment is not None and settled(self.assessment)))
 

@@ -87,7 +87,7 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
 
 def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-           min_step_px: float = MIN_STEP_PX, max_failures: int = 3, min_decrease: float = MIN_DECREASE,
+           min_step_px: float = MIN_STEP_PX, max_failures: int = 3,
            line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:
     """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
 
@@ -174,7 +174,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
-            negligible = cost - c2 < min_decrease * cost
+            negligible = cost - c2 < MIN_DECREASE * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.accepted_steps += 1
             stats.step_px = motion

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import DATA, localizer_errors, shaped_prior  # noqa: E402
+from real_photos import DATA, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
 from trust import data_case, donut_case, room_case  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
@@ -124,15 +124,11 @@ def main() -> None:
     for c in a.cases:
         lines += run(c, a.queries, config, a.rows)
     if a.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
-
         head = ["# Basin (`benchmarks/basin.py`)", "",
                 f"Regenerate: `python benchmarks/basin.py --out {a.out}`. Backend {arch}; "
                 f"{'wide_step_pixels ' + a.wide if a.wide else 'default config'}; one run, "
                 f"{(time.perf_counter() - t0) / 60:.0f} min. cm-eq: 7-Scenes-equivalent cm (the room: cm)."]
-        old = a.out.read_text() if a.out.exists() else ""
-        notes = ["", old[old.index("\n## Notes") + 1:].rstrip("\n")] if "\n## Notes" in old else []
-        atomic_write_bytes(a.out, ("\n".join(head + lines + notes) + "\n").encode())
+        write_keeping_notes(a.out, head + lines)
 
 
 if __name__ == "__main__":

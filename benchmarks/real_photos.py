@@ -94,6 +94,16 @@ def shaped_prior(gt: hp.Pose, err: hp.Pose, depth: float) -> hp.Pose:
     return hp.Pose(err.qvec, err.tvec * depth / 2.0) @ gt
 
 
+def write_keeping_notes(path: Path, lines: list[str]) -> None:
+    """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping the ``## Notes`` section the file
+    already has below its tables: a benchmark regenerates its figures, not the discussion written beside them."""
+    from hgsloc_plugin.fileio import atomic_write_bytes
+
+    old = path.read_text() if path.exists() else ""
+    notes = ["", old[old.index("\n## Notes") + 1:].rstrip("\n")] if "\n## Notes" in old else []
+    atomic_write_bytes(path, ("\n".join(lines + notes) + "\n").encode())
+
+
 def protocols(dataset: str, queries, seeds: int):
     """name -> list of (query index, prior pose)."""
     out = {"truth": [(i, q[1]) for i, q in enumerate(queries)]}

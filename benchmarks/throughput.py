@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import load_dataset  # noqa: E402
+from real_photos import load_dataset, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
@@ -174,14 +174,9 @@ def main() -> None:
              *(s for _, s in done)]
     print("\n".join(split), flush=True)
     if a.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
-
-        text = ["# Throughput (`benchmarks/throughput.py`)", "",
-                f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows, *split]
-        old = a.out.read_text() if a.out.exists() else ""
-        if "\n## Notes" in old:  # the written discussion below the tables is kept
-            text += ["", old[old.index("\n## Notes") + 1:].rstrip("\n")]
-        atomic_write_bytes(a.out, ("\n".join(text) + "\n").encode())
+        write_keeping_notes(a.out, ["# Throughput (`benchmarks/throughput.py`)", "",
+                                    f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows,
+                                    *split])
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ def test_user_trust_region_bounds_the_search():
         assert shift > moved, "the search moved towards the optimum up to the region"
 
 
-def _snow():
+def _snow(ply: str = "snow.ply"):
     import json as _json
 
     from hgsloc_plugin.image import load_image
@@ -105,7 +105,7 @@ def _snow():
 
     cj = _json.loads((SNOW / "camera.json").read_text())
     cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
-    scene = hp.GaussianScene.from_ply(SNOW / "snow.ply")
+    scene = hp.GaussianScene.from_ply(SNOW / ply)
     out = []
     for line in (SNOW / "gt.txt").read_text().splitlines():
         t = line.split()
@@ -136,6 +136,24 @@ def test_real_photos_true_pose_is_kept_and_priors_improve():
         # the uncertainty is informative (well below the prior's error) and covers the real error
         assert 0 < r2.sigma_t < 0.5 * t0 and 0 < r2.sigma_r_deg < 0.5 * r0, (r2.sigma_t, r2.sigma_r_deg, t0, r0)
         assert t1 <= 3 * r2.sigma_t and r1 <= 3 * r2.sigma_r_deg, (t1, r2.sigma_t, r1, r2.sigma_r_deg)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SNOW / "snow_sharp.ply").exists(), reason="../shared/data/snow not present")
+def test_real_photo_far_prior_is_fixed_by_the_wide_search():
+    """Real photo, good map: a prior 20 % of the depth / 10 deg off (``benchmarks/basin.py``'s 40 cm-eq / 10 deg
+    row, query 1), beyond the gradient route and the usual search, is brought within 1 % of the depth / 0.5 deg by
+    the wide search, whose lattice scores at ``wide_max_side`` (32 px); scoring that lattice at the pyramid size
+    instead (the wide search until 2026-12-02) ends in a plateau and keeps the prior."""
+    scene, cam, queries = _snow("snow_sharp.ply")
+    rng = np.random.default_rng(410)
+    priors = [se3_noise(gt, 10.0, 0.2 * depth, rng) for _, gt, _, depth in queries]
+    name, gt, img, depth = queries[1]
+    r = hp.HGSLocPlugin(scene).refine(img, cam, priors[1], name=name)
+    assert r.accepted and r.route == "wide search" and r.gradient_rejected is not None
+    assert [lv.width for lv in r.levels[-2:]] == [32, 32]
+    t, a = r.pose.errors_to(gt)
+    assert t < 0.01 * depth and a < 0.5, (t / depth, a)
 
 
 @pytest.mark.slow

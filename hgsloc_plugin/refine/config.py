@@ -45,9 +45,11 @@ class RefineConfig:
             ``polish_max_side`` with at most ``polish_iterations`` derivative passes; cs metric only.
         gradient_first: try the gradient route (the polish alone) first; search only when its pose is refused.
         search: run the lattice search; False with ``polish``: gradient only.
-        wide_step_pixels: image motion of extra coarse levels for a wider search, run (before the usual levels,
-            with its automatic trust region ``trust_steps`` times the first of them) only when the search's pose is
-            refused: priors 30-100 px of image motion off. Default (16, 8); (): off.
+        wide_step_pixels: image motion (pixels at the final scoring size) of the wide search's lattice levels,
+            run only when the search's pose is refused (priors 30-100 px of image motion off), with the automatic
+            trust region ``trust_steps`` times the first of them; needs the polish; (): off.
+        wide_max_side: the wide search's scoring size (longest side, pixels): its lattice levels and the first
+            stage of its polish score there, where the cost falls towards the truth from tens of pixels away.
         mask_alpha: ignore pixels whose rendered alpha is below this.
         background: RGB behind the Gaussians (the map's training background).
         resize_query: resize a query whose size differs from its camera's instead of raising.
@@ -85,6 +87,7 @@ class RefineConfig:
     polish_max_side: int = 320
     search: bool = True
     wide_step_pixels: tuple[float, ...] = (16.0, 8.0)
+    wide_max_side: int = 32
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False
@@ -129,6 +132,8 @@ class RefineConfig:
         if not all(x > 0 and math.isfinite(x) for x in self.wide_step_pixels):
             raise ValueError(f"wide_step_pixels must be positive numbers, got {self.wide_step_pixels!r}")
         object.__setattr__(self, "wide_step_pixels", tuple(float(x) for x in self.wide_step_pixels))
+        if not self.wide_max_side >= 16:
+            raise ValueError(f"wide_max_side must be >= 16, got {self.wide_max_side!r}")
         object.__setattr__(self, "background", tuple(float(x) for x in self.background))
 
     @staticmethod

@@ -32,7 +32,8 @@ class Plan:
 
     Attributes:
         coarse_pose: the prior (world-to-camera).
-        cam_final / cam_coarse / cam_polish: the fine levels', the pyramid levels' and the polish's cameras.
+        cam_final / cam_coarse / cam_polish / cam_wide: the fine levels', the pyramid levels', the polish's and
+            the wide search's cameras.
         levels: (rotation step in degrees, translation step in scene units) per search level, coarse to fine.
         depth: the coarse pose's median scene depth (scene units).
         max_shift / max_rotation_deg: the trust region around ``coarse_pose``.
@@ -43,6 +44,7 @@ class Plan:
     cam_final: Camera
     cam_coarse: Camera
     cam_polish: Camera
+    cam_wide: Camera
     levels: tuple[tuple[float, float], ...]
     depth: float
     max_shift: float
@@ -66,12 +68,14 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
               prior: QueryPrior, step_pixels: tuple[float, ...] | None = None) -> Plan:
     """The plan of one query: ``prior``'s settings first, then ``config``'s, then the automatic trust region
     (``trust_steps`` coarsest steps; half the depth and 10 degrees for the paper's raw-component steps).
-    ``step_pixels``: the automatic levels' image motion instead of ``config.step_pixels`` (the wide search's)."""
+    ``step_pixels``: the automatic levels' image motion instead of ``config.step_pixels`` (the wide search's
+    ``config.wide_step_pixels``)."""
     cfg = config
     cam_final = camera.with_max_side(cfg.score_max_side)
     coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
     cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
     cam_polish = camera.with_max_side(cfg.polish_max_side)
+    cam_wide = cam_final.with_max_side(cfg.wide_max_side)
     depth = median_depth(scene, cam_final, coarse_pose)
     if cfg.neighbourhood == "paper":
         levels = [(cfg.paper_step_q, cfg.paper_step_t)]
@@ -84,7 +88,7 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
         auto_shift, auto_rotation = 0.5 * depth, 10.0
     else:
         auto_shift, auto_rotation = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
-    return Plan(coarse_pose, cam_final, cam_coarse, cam_polish, tuple(levels), depth,
+    return Plan(coarse_pose, cam_final, cam_coarse, cam_polish, cam_wide, tuple(levels), depth,
                 _first(prior.shift_bound(depth), cfg.max_shift, auto_shift),
                 _first(prior.max_rotation_deg, cfg.max_rotation_deg, auto_rotation),
                 _first(prior.centre_error(depth), cfg.prior_error), _first(prior.prior_error_deg, cfg.prior_error_deg))

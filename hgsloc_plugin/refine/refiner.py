@@ -1,7 +1,7 @@
 """Refiner: refine one coarse camera pose on a 3DGS map.
 
-``Refiner.refine`` reads top to bottom: plan (``plan.py``) -> gradient route -> (search route) (``routes.py``),
-each judged by the acceptance rule (``trust.judge``) -> result (``result.py``).
+``Refiner.refine`` reads top to bottom: plan (``plan.py``) -> gradient route -> (search route) -> (wide search
+route) (``routes.py``), each judged by the acceptance rule (``trust.judge``) -> result (``result.py``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from ..working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan, make_plan
 from .result import RefineResult
-from .routes import Candidate, QueryContext, gradient_route, search_route
+from .routes import Candidate, QueryContext, gradient_route, search_route, wide_search_route
 from .scorer import Scorer
 from .trust import Verdict, judge
 
@@ -95,14 +95,12 @@ class Refiner:
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
         if not tried or not tried[-1][1].ends_refinement():
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
-        if (cfg.wide_step_pixels and cfg.search and cfg.neighbourhood == "lattice" and not cfg.levels
+        if (cfg.wide_step_pixels and cfg.search and cfg.polishes and cfg.neighbourhood == "lattice" and not cfg.levels
                 and not tried[-1][1].ends_refinement()):
-            wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.wide_step_pixels + cfg.step_pixels)
-            ctx = dataclasses.replace(ctx, plan=wide)
-            cand = search_route(ctx)
-            cand.route = "wide search"
             logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
-            tried.append(self._judged(ctx, cand))
+            ctx = dataclasses.replace(ctx, plan=make_plan(cfg, self.scene, camera, coarse_pose, prior,
+                                                          cfg.wide_step_pixels))
+            tried.append(self._judged(ctx, wide_search_route(ctx)))
         return _result(ctx, tried, time.perf_counter() - t0)
 
     def _judged(self, ctx: QueryContext, cand: Candidate) -> tuple[Candidate, Verdict]:
@@ -120,8 +118,8 @@ class Refiner:
         cam = plan.cam_final
         f = min(cam.fx, cam.fy)
         px = self.config.working_set_pixels
-        return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish], px * plan.depth / f,
-                          math.degrees(px / f))
+        return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish, plan.cam_wide],
+                          px * plan.depth / f, math.degrees(px / f))
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None,
                    prior: QueryPrior | None = None, **settings: float | None) -> RefineResult:

@@ -1,5 +1,6 @@
-"""The two routes from a coarse pose to a candidate: the gradient route (Levenberg-Marquardt alone, coarse to
-fine) and the search route (best-first lattice search over step levels, then the polish).
+"""The routes from a coarse pose to a candidate: the gradient route (Levenberg-Marquardt alone, coarse to fine),
+the search route (best-first lattice search over step levels, then the polish) and the wide search route (lattice
+levels of wide steps at a very small size, then the polish coarse to fine from there).
 
 Each route takes the query's :class:`QueryContext` and returns a :class:`Candidate`: the pose the acceptance
 rule (``trust.judge``) then judges, with the costs and the effort that led to it.
@@ -81,11 +82,42 @@ def _route(ctx: QueryContext, search: bool) -> Candidate:
     if search:
         _search_levels(ctx, cand)
     if cfg.polishes:
-        cand.pose = _polish(ctx, cand, search)
+        cams = [plan.cam_polish] if search else [plan.cam_coarse, plan.cam_final, plan.cam_polish]
+        cand.pose = _polish(ctx, cand, cams, near=search)
         if judge_cam != plan.cam_final:
             scorer.set_query(judge_cam, ctx.image, renderer=ctx.renderer)
             cand.cost_initial = float(scorer([coarse])[0])
         cand.cost = float(scorer([cand.pose])[0])
+    return cand
+
+
+def wide_search_route(ctx: QueryContext) -> Candidate:
+    """The wide search, for priors tens of pixels of image motion off (after the search's pose is refused):
+    best-first lattice levels of the plan's steps (``RefineConfig.wide_step_pixels``) with pattern moves, scored at
+    the small ``plan.cam_wide`` (``wide_max_side``) where the cost still falls towards the truth, then the polish
+    coarse to fine from that size over the wide, pyramid, final and polish sizes. Needs ``config.polishes``."""
+    cfg, plan, scorer, coarse = ctx.config, ctx.plan, ctx.scorer, ctx.plan.coarse_pose
+    scorer.set_query(plan.cam_wide, ctx.image, renderer=ctx.renderer)
+    best_pose, best_cost = coarse, float(scorer([coarse])[0])
+    cand = Candidate("wide search", coarse, math.nan, math.nan, coarse)
+    remaining = cfg.max_expansions
+    for s_rot, s_t in plan.levels:
+        if remaining <= 0:
+            break
+        space = LatticeSpace(best_pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
+        lr = best_first(space, best_cost, scorer, plan.allows, budget=min(cfg.max_expansions_per_level, remaining),
+                        patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost, pattern=True)
+        remaining -= lr.expansions
+        best_pose, best_cost = space.pose(lr.best_key), lr.best_cost
+        cand.expansions += lr.expansions
+        cand.history.extend(lr.history)
+        cand.levels.append(LevelStats(s_rot, s_t, plan.cam_wide.width, plan.cam_wide.height, lr.expansions,
+                                      lr.renders, lr.best_cost, lr.stopped))
+    cand.pose = cand.after_coarse = best_pose
+    cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
+    cand.pose = _polish(ctx, cand, cams, near=False)
+    scorer.set_query(ctx.judge_cam, ctx.image, renderer=ctx.renderer)
+    cand.cost_initial, cand.cost = (float(c) for c in scorer([coarse, cand.pose]))
     return cand
 
 
@@ -130,23 +162,20 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
     cand.pose, cand.cost = best_pose, best_cost
 
 
-def _polish(ctx: QueryContext, cand: Candidate, search: bool) -> Pose:
-    """Levenberg-Marquardt on the cs cost (``refine/polish.py``) from ``cand.pose`` at the polish size; on the
-    gradient route, coarse to fine over the coarse, final and polish sizes. A stage that starts near its minimum
-    (after a coarser stage or the search) scores the shorter line search ``FINE_LINE_SEARCH``. Appends to
-    ``cand.polish``."""
+def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) -> Pose:
+    """Levenberg-Marquardt on the cs cost (``refine/polish.py``) from ``cand.pose``, one stage per camera of
+    ``cams`` (coarse to fine; repeated sizes run once). A stage that starts near its minimum (after a coarser
+    stage, or the first when ``near``: after the search) scores the shorter line search ``FINE_LINE_SEARCH``.
+    Appends to ``cand.polish``."""
     cfg, plan = ctx.config, ctx.plan
-    cams = [plan.cam_polish]
-    if not search:
-        cams = list(dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish]))
+    cams = list(dict.fromkeys(cams))
     pose = cand.pose
     for i, cam in enumerate(cams):
         q = ctx.renderer.upload_window_query(resize_image(ctx.image, cam.width, cam.height))
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
-        near = search or i > 0
         pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
                              allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,
                              min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX,
-                             line_search=FINE_LINE_SEARCH if near else LINE_SEARCH)
+                             line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
         cand.polish.append(stats)
     return pose

@@ -1,17 +1,17 @@
 """Map floor: how far an imperfect map's cost minimum lies from the true pose, and what the refiner can see of it.
 
-Usage: python benchmarks/map_floor.py [--datasets snow lego] [--draws 8] [--out benchmarks/map_floor.md]
+Usage: python benchmarks/map_floor.py [--datasets snow_sharp snow lego] [--draws 8] [--out benchmarks/map_floor.md]
 
-Part 1, per real query (``../shared/data/snow``: real photos; ``lego``: held-out renders): the map's minimum
-(the default refinement from 3 priors 2 % of depth / 1 deg off, the median pose of those accepted), its
-error against the true (SfM) pose in 7-Scenes-equivalent cm (centre error x 2 m / median depth) and degrees, the
-true pose's Mahalanobis distance under the refinement's covariance (6 degrees of freedom: median 2.3 when the
-covariance is right), the cs cost's rise from the minimum to the true pose, and where other costs put the minimum
-on the line from the map's minimum (0) to the true pose (1), from a parabola fitted to 9 renders on it: windowed
-cs with window sigma 1.5 (the kernels'), 3 or 6 px, each with both images blurred by 0, 1 or 2 px, and pixel
-weightings fixed at the minimum (pixels the rendering explains, cs > 0.5 or 0.7; opaque ones, alpha > 0.99;
-where the rendering is at least half as sharp as the photo). Per-pixel maps come from the test suite's PyTorch
-reference (``tests/reference/render_torch.window_map``).
+Part 1, per real query (``../shared/data/snow``: real photos against the sharp map ``snow_sharp`` and the imperfect
+``snow``; ``lego``: held-out renders): the map's minimum (the default refinement from 3 priors 2 % of depth / 1 deg
+off, the median pose of those accepted), its error against the true (SfM) pose in 7-Scenes-equivalent cm (centre
+error x 2 m / median depth) and degrees, the true pose's Mahalanobis distance under the refinement's covariance (6
+degrees of freedom: median 2.3 when the covariance is right), the cs cost's rise from the minimum to the true pose,
+and where other costs put the minimum on the line from the map's minimum (0) to the true pose (1), from a parabola
+fitted to 9 renders on it: windowed cs with window sigma 1.5 (the kernels'), 3 or 6 px, each with both images
+blurred by 0, 1 or 2 px, and pixel weightings fixed at the minimum (pixels the rendering explains, cs > 0.5 or 0.7;
+opaque ones, alpha > 0.99; where the rendering is at least half as sharp as the photo). Per-pixel maps come from the
+test suite's PyTorch reference (``tests/reference/render_torch.window_map``).
 
 Part 2, the decision the acceptance rule would have to make: per query, ``--draws`` priors 0.25 cm-eq / 0.1 deg, as
 many 1 cm-eq / 0.5 deg and as many 3 cm-eq / 1 deg off (random directions), each refined with the defaults. Per
@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import load_dataset  # noqa: E402
+from real_photos import load_dataset, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
@@ -197,7 +197,7 @@ def decision_part(name: str, refiner: hp.HGSLocPlugin, cam, queries, draws: int)
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--datasets", nargs="+", default=["snow", "lego"])
+    ap.add_argument("--datasets", nargs="+", default=["snow_sharp", "snow", "lego"])
     ap.add_argument("--queries", type=int, default=6)
     ap.add_argument("--draws", type=int, default=8)
     ap.add_argument("--out", default=None)
@@ -216,11 +216,10 @@ def main() -> None:
         lines += floor_part(name, refiner, cam, queries, bg)
         lines += decision_part(name, refiner, cam, queries, args.draws)
     lines.append(f"\nTotal {time.perf_counter() - t0:.0f} s.")
-    text = "\n".join(lines) + "\n"
     if args.out:
-        Path(args.out).write_text(text)
+        write_keeping_notes(Path(args.out), lines)
     else:
-        print(text)
+        print("\n".join(lines))
 
 
 if __name__ == "__main__":

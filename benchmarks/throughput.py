@@ -1,13 +1,17 @@
 """Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
 
-Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20] [--noise 2,1] [--out FILE]
+Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
+                                       [--out FILE]
 
 One process, one run. Per case, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
   (% of the query's median depth, degrees) in random directions;
 - ``lego``: 5 held-out renders (white background), the same priors;
 - ``room`` / ``room_x20``: the demo room (49k Gaussians) and the room densified 20x (975k), 3 photo-degraded
-  queries at 320x240.
+  queries at 320x240;
+- ``7scenes_shaped``: a 7-Scenes-shaped job: the room, 6 photo-degraded queries at 640x480 (7-Scenes' size), priors
+  with the camera-frame errors of the real ACE (queries 0-2) and Marepo (3-5) 7-Scenes estimates against the SfM
+  pseudo ground truth (``../shared/data/poses/7scenes``, one drawn per query; metres, as 7-Scenes).
 
 Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, median of 15, on
 the renderer the refinement uses, measured in this process before the queries) and per pose of a 12-pose batch,
@@ -15,7 +19,8 @@ seconds per query, queries per second, time per query in render-times (machine-i
 cost in single plain renders of the same map and size), renders and derivative passes per query, the prior's and
 the returned median error (% depth or cm; degrees), queries made worse. Sequential (``refine_many``, one query
 at a time). A second table splits each query's time (render-times) by stage: the polish per scoring size, the
-acceptance rule (its 12 one-pixel moves), the lattice search, and the rest (plan, working set, query upload).
+acceptance rule (its 12 one-pixel moves), the lattice search (usual and wide levels), and the rest (plan, working
+set, query upload).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import load_dataset, write_keeping_notes  # noqa: E402
+from real_photos import load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
@@ -55,7 +60,33 @@ def room_case(k: int):
     return QUERY_CAMERA, scene, qs, (0.0, 0.0, 0.0)
 
 
+def seven_scenes_case():
+    """(camera, scene, queries, background) of the 7-Scenes-shaped job: the room, 6 queries at 640x480."""
+    from hgsloc_plugin.demo.queries import degrade, query_poses
+    from hgsloc_plugin.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.refine.plan import median_depth
+
+    room, cam = make_room_scene(), QUERY_CAMERA.scaled(2.0)
+    gts = query_poses(6, seed=1)
+    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, cam, gts))]
+    return cam, room, [(f"room{i}", g, im, median_depth(room, cam, g)) for i, (g, im) in enumerate(zip(gts, imgs))], \
+        (0.0, 0.0, 0.0)
+
+
+def shaped_priors(qs) -> list[hp.Pose]:
+    """The 7-Scenes-shaped job's priors: ACE's errors for the first half of ``qs``, Marepo's for the rest."""
+    rng = np.random.default_rng(500)
+    out = []
+    for k, (_, g, _, _) in enumerate(qs):
+        errs = localizer_errors("ace" if k < len(qs) // 2 else "marepo")
+        out.append(shaped_prior(g, errs[int(rng.integers(len(errs)))], 2.0))  # metric: the errors as they are
+    return out
+
+
 def load(case: str):
+    if case == "7scenes_shaped":
+        return seven_scenes_case()
     if case.startswith("room"):
         return room_case(int(case.split("_x")[1]) if "_x" in case else 1)
     out = load_dataset(case)
@@ -103,10 +134,10 @@ def stage_clock():
                 spent[key(args) if callable(key) else key] += time.perf_counter() - t0
         return wrapper
 
-    saved = [(routes, "polish"), (routes, "_search_levels"), (refiner_mod, "judge")]
+    saved = [(routes, "polish"), (routes, "best_first"), (refiner_mod, "judge")]
     originals = [getattr(m, n) for m, n in saved]
     routes.polish = timed(routes.polish, lambda a: f"polish {a[1].width}x{a[1].height}")
-    routes._search_levels = timed(routes._search_levels, "search")
+    routes.best_first = timed(routes.best_first, "search")
     refiner_mod.judge = timed(refiner_mod.judge, "rule")
     try:
         yield spent
@@ -121,10 +152,12 @@ def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
         print(f"skipping {case}: data not found", file=sys.stderr)
         return None
     cam, scene, qs, bg = loaded
-    metric = case.startswith("room")
+    metric = case.startswith("room") or case == "7scenes_shaped"
     unit = "cm" if metric else "% depth"
     rng = np.random.default_rng(7)
     priors = [se3_noise(g, deg, pct / 100 * (1.0 if metric else d), rng) for _, g, _, d in qs]
+    if case == "7scenes_shaped":
+        priors = shaped_priors(qs)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     ms, ms_batch = render_ms(refiner, cam, priors[0])
@@ -155,14 +188,15 @@ def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room", "room_x20"])
+    ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room", "room_x20", "7scenes_shaped"])
     ap.add_argument("--noise", default="2,1", help="prior size: percent of the median depth (cm on the room), "
                                                    "degrees")
     ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
     a = ap.parse_args()
     pct, deg = (float(x) for x in a.noise.split(","))
     arch = hp.init()
-    head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg; sequential.", "",
+    head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
+            "ACE's and Marepo's errors); sequential.", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse |",

@@ -45,33 +45,20 @@ from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
 
 
-def room_case(k: int):
-    """(camera, scene, [(name, truth, image, median depth)], background, unit scale) of the (densified) room."""
+def room_case(k: int, n: int = 3, scale: float = 1.0):
+    """(camera, scene, [(name, truth, image, median depth)], background) of the room densified ``k`` times, ``n``
+    photo-degraded queries of the undensified room at ``scale`` times the demo's 320x240."""
     from hgsloc_plugin.demo.queries import degrade, query_poses
     from hgsloc_plugin.demo.run import QUERY_CAMERA
     from hgsloc_plugin.demo.scene import densify, make_room_scene
     from hgsloc_plugin.refine.plan import median_depth
 
-    room = make_room_scene()
-    gts = query_poses(3, seed=1)
-    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, QUERY_CAMERA, gts))]
-    scene = densify(room, k) if k > 1 else room
-    qs = [(f"room{i}", g, im, median_depth(scene, QUERY_CAMERA, g)) for i, (g, im) in enumerate(zip(gts, imgs))]
-    return QUERY_CAMERA, scene, qs, (0.0, 0.0, 0.0)
-
-
-def seven_scenes_case():
-    """(camera, scene, queries, background) of the 7-Scenes-shaped job: the room, 6 queries at 640x480."""
-    from hgsloc_plugin.demo.queries import degrade, query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.refine.plan import median_depth
-
-    room, cam = make_room_scene(), QUERY_CAMERA.scaled(2.0)
-    gts = query_poses(6, seed=1)
+    room, cam = make_room_scene(), QUERY_CAMERA.scaled(scale)
+    gts = query_poses(n, seed=1)
     imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, cam, gts))]
-    return cam, room, [(f"room{i}", g, im, median_depth(room, cam, g)) for i, (g, im) in enumerate(zip(gts, imgs))], \
-        (0.0, 0.0, 0.0)
+    scene = densify(room, k) if k > 1 else room
+    qs = [(f"room{i}", g, im, median_depth(scene, cam, g)) for i, (g, im) in enumerate(zip(gts, imgs))]
+    return cam, scene, qs, (0.0, 0.0, 0.0)
 
 
 def shaped_priors(qs) -> list[hp.Pose]:
@@ -85,8 +72,8 @@ def shaped_priors(qs) -> list[hp.Pose]:
 
 
 def load(case: str):
-    if case == "7scenes_shaped":
-        return seven_scenes_case()
+    if case == "7scenes_shaped":  # the room, 6 queries at 640x480 (7-Scenes' size)
+        return room_case(1, n=6, scale=2.0)
     if case.startswith("room"):
         return room_case(int(case.split("_x")[1]) if "_x" in case else 1)
     out = load_dataset(case)

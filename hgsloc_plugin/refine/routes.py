@@ -101,18 +101,12 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     best_pose, best_cost = coarse, float(scorer([coarse])[0])
     cand = Candidate("wide search", coarse, math.nan, math.nan, coarse)
     remaining = cfg.max_expansions
-    for s_rot, s_t in plan.levels:
+    for step in plan.levels:
         if remaining <= 0:
             break
-        space = LatticeSpace(best_pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
-        lr = best_first(space, best_cost, scorer, plan.allows, budget=min(cfg.max_expansions_per_level, remaining),
-                        patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost, pattern=True)
-        remaining -= lr.expansions
-        best_pose, best_cost = space.pose(lr.best_key), lr.best_cost
-        cand.expansions += lr.expansions
-        cand.history.extend(lr.history)
-        cand.levels.append(LevelStats(s_rot, s_t, plan.cam_wide.width, plan.cam_wide.height, lr.expansions,
-                                      lr.renders, lr.best_cost, lr.stopped))
+        best_pose, best_cost, used = _level(ctx, cand, best_pose, best_cost, step, plan.cam_wide,
+                                            min(cfg.max_expansions_per_level, remaining), pattern=True)
+        remaining -= used
     cand.pose = cand.after_coarse = best_pose
     cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
     cand.pose = _polish(ctx, cand, cams, near=False)
@@ -128,7 +122,7 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
     best_pose, best_cost, best_cam = cand.pose, cand.cost, plan.cam_final
     remaining = cfg.max_expansions
     exact, lod = scorer.renderer, None
-    for li, (s_rot, s_t) in enumerate(plan.levels):
+    for li, step in enumerate(plan.levels):
         if remaining <= 0:
             break
         is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
@@ -141,25 +135,36 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
             scorer.set_query(cam_l, ctx.image, renderer=want)
             best_cost = float(scorer([best_pose])[0])
             best_cam = cam_l
-        if cfg.neighbourhood == "paper":
-            space = PaperSpace(best_pose, s_rot, s_t)
-        else:
-            space = LatticeSpace(best_pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
-        lr = best_first(space, best_cost, scorer, plan.allows, budget=min(cfg.max_expansions_per_level, remaining),
-                        patience=cfg.patience, weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost,
-                        pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
-        remaining -= lr.expansions
-        best_pose, best_cost = space.pose(lr.best_key), lr.best_cost
-        cand.expansions += lr.expansions
-        cand.history.extend(lr.history)
-        cand.levels.append(LevelStats(s_rot, s_t, cam_l.width, cam_l.height, lr.expansions, lr.renders,
-                                      lr.best_cost, lr.stopped))
+        best_pose, best_cost, used = _level(ctx, cand, best_pose, best_cost, step, cam_l,
+                                            min(cfg.max_expansions_per_level, remaining),
+                                            pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
+        remaining -= used
         if is_coarse:
             cand.after_coarse = best_pose
     if best_cam != plan.cam_final or scorer.renderer is not exact:
         scorer.set_query(plan.cam_final, ctx.image, renderer=exact)
         best_cost = float(scorer([best_pose])[0])
     cand.pose, cand.cost = best_pose, best_cost
+
+
+def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tuple[float, float], cam: Camera,
+           budget: int, pattern: bool) -> tuple[Pose, float, int]:
+    """One best-first level of ``step`` (degrees, scene units) from ``pose`` at its ``cost``, scored at ``cam``
+    (the scorer's current size), in ``config.neighbourhood``; adds its effort to ``cand``. Returns the best pose,
+    its cost and the expansions used."""
+    cfg, plan = ctx.config, ctx.plan
+    s_rot, s_t = step
+    if cfg.neighbourhood == "paper":
+        space = PaperSpace(pose, s_rot, s_t)
+    else:
+        space = LatticeSpace(pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
+    lr = best_first(space, cost, ctx.scorer, plan.allows, budget=budget, patience=cfg.patience,
+                    weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost, pattern=pattern)
+    cand.expansions += lr.expansions
+    cand.history.extend(lr.history)
+    cand.levels.append(LevelStats(s_rot, s_t, cam.width, cam.height, lr.expansions, lr.renders, lr.best_cost,
+                                  lr.stopped))
+    return space.pose(lr.best_key), lr.best_cost, lr.expansions
 
 
 def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) -> Pose:

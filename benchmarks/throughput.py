@@ -1,7 +1,7 @@
 """Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
-                                       [--out FILE]
+                                       [--batch-size N] [--out FILE]
 
 One process, one run. Per case, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
@@ -17,10 +17,13 @@ Columns: Gaussians, scoring size, one plain render of one pose at the final scor
 the renderer the refinement uses, measured in this process before the queries) and per pose of a 12-pose batch,
 seconds per query, queries per second, time per query in render-times (machine-independent: the refinement's
 cost in single plain renders of the same map and size), renders and derivative passes per query, the prior's and
-the returned median error (% depth or cm; degrees), queries made worse. Sequential (``refine_many``, one query
-at a time). A second table splits each query's time (render-times) by stage: the polish per scoring size, the
-acceptance rule (its 12 one-pixel moves), the lattice search (usual and wide levels), and the rest (plan, working
-set, query upload).
+the returned median error (% depth or cm; degrees), queries made worse: all for one query at a time
+(``refine_many(batch_size=1)``). Then the same queries in one lockstep batch (``--batch-size``, default the
+backend's: ``hgsloc_plugin/lockstep.py``): seconds per query, speed over sequential, device calls per query
+sequential -> batched (the host-device round trips: a batched launch counts once), and whether every returned
+pose equals the sequential one bit for bit. A second table splits each query's time (render-times, sequential)
+by stage: the polish per scoring size, the acceptance rule (its 12 one-pixel moves), the lattice search (usual
+and wide levels), and the rest (plan, working set, query upload).
 """
 
 from __future__ import annotations
@@ -41,6 +44,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
+from hgsloc_plugin.backend import default_batch_size  # noqa: E402
+from hgsloc_plugin.batch import as_queries  # noqa: E402
+from hgsloc_plugin.lockstep import Lockstep, refine_queries  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
 
@@ -133,7 +139,15 @@ def stage_clock():
             setattr(m, n, f)
 
 
-def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
+def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int) -> tuple[list, float, Lockstep]:
+    """The queries in lockstep batches: (results in input order, seconds per query, the gate with its counts)."""
+    gate = Lockstep(batch_size)
+    t0 = time.perf_counter()
+    pairs = sorted(refine_queries(refiner, as_queries(items), gate=gate), key=lambda qr: qr[0].index)
+    return [r for _, r in pairs], (time.perf_counter() - t0) / len(items), gate
+
+
+def run(case: str, pct: float, deg: float, batch_size: int) -> tuple[str, str] | None:
     loaded = load(case)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -151,8 +165,10 @@ def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
     with stage_clock() as spent:
         t0 = time.perf_counter()
-        results = refiner.refine_many(items, progress=False)
+        results = refiner.refine_many(items, progress=False, batch_size=1)
         sec = (time.perf_counter() - t0) / len(items)
+    together, sec_b, gate = batched(refiner, items, batch_size)
+    same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for a, b in zip(results, together))
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
     e1 = np.array([[r.pose.errors_to(g)[0] * s, r.pose.errors_to(g)[1]] for (_, g, _, _), r, s in
@@ -164,7 +180,9 @@ def run(case: str, pct: float, deg: float) -> tuple[str, str] | None:
            f"{sec:.2f} | {1 / sec:.2f} | {1000 * sec / ms:.0f} | {np.mean([r.renders for r in results]):.0f} | "
            f"{np.mean([r.derivative_passes for r in results]):.1f} | "
            f"{np.median(e0[:, 0]):.3f} / {np.median(e0[:, 1]):.2f} {unit} | "
-           f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} |")
+           f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} | "
+           f"{sec_b:.2f} | {sec / sec_b:.2f}x | {gate.requests / len(items):.0f} -> {gate.launches / len(items):.0f} | "
+           f"{'yes' if same else 'NO'} |")
     print(row, flush=True)
     unit = len(items) * ms / 1000  # seconds of one render, per query
     parts = {k: v / unit for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
@@ -178,18 +196,21 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room", "room_x20", "7scenes_shaped"])
     ap.add_argument("--noise", default="2,1", help="prior size: percent of the median depth (cm on the room), "
                                                    "degrees")
+    ap.add_argument("--batch-size", type=int, help="queries per lockstep batch (default: the backend's)")
     ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
     a = ap.parse_args()
     pct, deg = (float(x) for x in a.noise.split(","))
     arch = hp.init()
+    bs = a.batch_size or default_batch_size()
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
-            "ACE's and Marepo's errors); sequential.", "",
+            f"ACE's and Marepo's errors); sequential, then batched ({bs} queries in lockstep).", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
-            "| renders / query | derivative passes | prior median t / R | returned median t / R | worse |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
+            "| batched s / query | batched speed | device calls / query | same poses |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    done = [r for r in (run(c, pct, deg) for c in a.cases) if r]
+    done = [r for r in (run(c, pct, deg, bs) for c in a.cases) if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -104,3 +104,13 @@ def _cuda_driver_present() -> bool:
 def current_arch() -> str:
     """The backend in use, starting the default one if nothing was started yet."""
     return _ARCH if _ARCH is not None else init()
+
+
+#: queries a lockstep batch advances together by default (``batch.run_batch``'s ``batch_size``), per backend: on
+#: the GPU a launch of many queries' poses fills the device; on the CPU a few fill the cores' work queues
+DEFAULT_BATCH_SIZE = {"cpu": 4, "cuda": 32}
+
+
+def default_batch_size() -> int:
+    """The default ``batch_size`` of the backend in use (``DEFAULT_BATCH_SIZE``)."""
+    return DEFAULT_BATCH_SIZE[current_arch()]

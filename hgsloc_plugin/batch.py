@@ -11,6 +11,7 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
+from .lockstep import refine_queries
 from .prior import QueryPrior
 from .refine import Refiner, RefineResult
 
@@ -58,7 +59,8 @@ def as_queries(items: Iterable) -> list[Query]:
 
 
 def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, ray_address: str | None = None,
-              progress: bool = True, on_result: Callable[[Query, RefineResult], None] | None = None,
+              batch_size: int | None = None, progress: bool = True,
+              on_result: Callable[[Query, RefineResult], None] | None = None,
               desc: str = "refining") -> list[RefineResult]:
     """Refine ``queries``; returns their results in input order.
 
@@ -66,14 +68,18 @@ def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, r
         refiner: scene, search and raster settings (Ray workers rebuild the same refiner from them).
         workers / ray_address: N local Ray worker processes, or an existing cluster ("auto", "ray://...");
             by default everything runs in this process. Results are identical either way.
-        on_result: called as ``on_result(query, result)`` as each query finishes (on Ray: in any order).
+        batch_size: queries advanced together, their renders in shared launches (``lockstep.py``; each Ray
+            worker too); 1: one query at a time; None: :func:`~hgsloc_plugin.backend.default_batch_size`.
+            The poses are the same for every batch size.
+        on_result: called as ``on_result(query, result)`` as each query finishes (in any order).
     """
     from tqdm import tqdm
 
     queries = list(queries)
+    batch_size = check_batch_size(batch_size)
     results: dict[int, RefineResult] = {}
     with tqdm(total=len(queries), desc=desc, unit="query", disable=not progress) as bar:
-        for q, res in _results(refiner, queries, workers, ray_address):
+        for q, res in _results(refiner, queries, workers, ray_address, batch_size):
             results[q.index] = res
             bar.update(1)
             if on_result is not None:
@@ -83,13 +89,23 @@ def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, r
     return out
 
 
-def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: str | None):
+def check_batch_size(batch_size: int | None) -> int:
+    """``batch_size``, or the backend's default when None; a clear error when it is not a positive integer."""
+    if batch_size is None:
+        from .backend import default_batch_size
+
+        return default_batch_size()
+    if isinstance(batch_size, bool) or int(batch_size) != batch_size or batch_size < 1:
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    return int(batch_size)
+
+
+def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: str | None, batch_size: int):
     """(query, result) pairs as they finish."""
     if workers or ray_address:
         from .distributed import ray_results
 
         yield from ray_results(refiner.scene, refiner.config, refiner.raster, queries,
-                               workers=max(1, workers or 1), address=ray_address)
+                               workers=max(1, workers or 1), address=ray_address, batch_size=batch_size)
         return
-    for q in queries:
-        yield q, q.refine_with(refiner)
+    yield from refine_queries(refiner, queries, batch_size)

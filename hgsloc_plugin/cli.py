@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
     r.add_argument("--figures", help="write comparison figures here")
     r.add_argument("--workers", type=count_arg, default=0, help="refine on N local Ray worker processes")
+    r.add_argument("--batch-size", type=positive_count_arg,
+                   help="queries refined together, their renders sharing launches; the same poses "
+                        "(default: 4 on the CPU, 32 on CUDA)")
     r.add_argument("--ray-address", help="run on an existing Ray cluster ('auto' or ray://host:port)")
     r.add_argument("--quiet", action="store_true")
     r.add_argument("--skip-check", action="store_true", help="do not check map/pose agreement first")

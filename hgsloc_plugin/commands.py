@@ -64,7 +64,7 @@ def cmd_refine(args) -> int:
     rep = refine_pose_file(scene, pf, Path(args.images), intrinsics, Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
-                           workers=args.workers, ray_address=args.ray_address,
+                           workers=args.workers, ray_address=args.ray_address, batch_size=args.batch_size,
                            inlier_region=not args.no_inlier_region)
     failed = {n: q["error"] for n, q in rep["queries"].items() if q.get("error")}
     for name, why in failed.items():

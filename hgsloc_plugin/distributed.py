@@ -32,14 +32,16 @@ def _worker_class(ray):
             init(arch, cpu_threads=threads or None)
             self.refiner = Refiner(scene, config, raster)
 
-        def refine_chunk(self, queries):
-            return [(q.index, q.refine_with(self.refiner)) for q in queries]
+        def refine_chunk(self, queries, batch_size: int):
+            from .lockstep import refine_queries
+
+            return [(q.index, res) for q, res in refine_queries(self.refiner, queries, batch_size)]
 
     return RefineWorker
 
 
 def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, address: str | None = None,
-                chunk_size: int = 2, max_retries: int = 2, threads_per_worker: int = 1,
+                chunk_size: int = 2, batch_size: int = 1, max_retries: int = 2, threads_per_worker: int = 1,
                 _after_chunk: Callable | None = None) -> Iterator[tuple]:
     """Yield (query, RefineResult) for every query as workers finish them (any order).
 
@@ -48,6 +50,8 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
         queries: :class:`~hgsloc_plugin.batch.Query` objects.
         address: an existing cluster ("auto" or "ray://host:port"); None starts a local Ray with ``workers``
             CPUs (or joins the one already initialised in this process).
+        chunk_size: queries sent to a worker at a time (at least ``batch_size``).
+        batch_size: queries a worker advances together (``batch.refine_queries``).
         max_retries: times a chunk is re-queued after its worker died.
     """
     ray = _require_ray()
@@ -70,13 +74,14 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
     def spawn():
         return Worker.options(**opts).remote(scene_ref, config, raster, arch, threads_per_worker)
 
+    chunk_size = max(chunk_size, batch_size)
     queue = [(list(queries[i:i + chunk_size]), 0) for i in range(0, len(queries), chunk_size)]
     running = {}  # future -> (actor, chunk, tries)
 
     def feed(actor):
         if queue:
             chunk, tries = queue.pop(0)
-            running[actor.refine_chunk.remote(chunk)] = (actor, chunk, tries)
+            running[actor.refine_chunk.remote(chunk, batch_size)] = (actor, chunk, tries)
 
     try:
         for _ in range(max(1, min(workers, len(queue)))):

@@ -29,22 +29,24 @@ logger = logging.getLogger("hgsloc_plugin")
 
 
 def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Path, config=None,
-         limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False) -> Path:
+         limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False,
+         batch_size: int | None = None) -> Path:
     """Refine hloc's ``results`` with the 3DGS ``scene``; intrinsics from ``queries`` (with intrinsics).
 
     Returns the path of the refined results (HLoc dialect), with a JSON report beside it. ``results`` is read as
     hloc writes it (``name qw qx qy qz tx ty tz`` per line): any other line is an error naming it.
+    ``batch_size``: queries refined together (``batch.run_batch``; None: the backend's default).
     """
     logger.info("Refining %s with %s", results, scene)
     refine_pose_file(scene, Path(results), Path(image_dir),
                      from_query_list(queries, allow_distortion=allow_distortion), Path(output),
-                     config=config, limit=limit, gt_variant=gt_variant, dialect="hloc")
+                     config=config, limit=limit, gt_variant=gt_variant, dialect="hloc", batch_size=batch_size)
     return Path(output)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The step's command line (hloc's flag style)."""
-    from .units import count_arg
+    from .units import count_arg, positive_count_arg
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, required=True)
@@ -55,6 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--config", default="default")
     ap.add_argument("--limit", type=count_arg)
     ap.add_argument("--allow_distortion", action="store_true")
+    ap.add_argument("--batch_size", type=positive_count_arg, help="queries refined together (default: 4 on the "
+                                                                  "CPU, 32 on CUDA)")
     ap.add_argument("--prior_error", help="the localizer's typical (median) camera-centre error, e.g. 2cm: each "
                                           "refined pose is fused with its prior (default: unknown)")
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
@@ -72,7 +76,7 @@ def cli(argv=None) -> int:
         overrides = prior_error_overrides(a.prior_error, a.prior_rotation_error,
                                           ("--prior_error", "--prior_rotation_error"))
         main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
-             a.limit, allow_distortion=a.allow_distortion)
+             a.limit, allow_distortion=a.allow_distortion, batch_size=a.batch_size)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"hloc step: error: {exc}", file=sys.stderr)
         return 2

@@ -160,7 +160,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
                      config: RefineConfig | None = None, limit: int | None = None, dialect: str = "auto",
                      gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
                      save_every: int = 10, settings: dict | None = None, workers: int = 0,
-                     ray_address: str | None = None, inlier_region: bool = True) -> dict:
+                     ray_address: str | None = None, inlier_region: bool = True,
+                     batch_size: int | None = None) -> dict:
     """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
 
     Args:
@@ -173,6 +174,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         figures: folder for comparison figures of each refined query.
         workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
             (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
+        batch_size: queries advanced together (``batch.run_batch``; None: the backend's default). Same poses.
         inlier_region: in files that hold each pose's RANSAC inlier count (ACE, GLACE), set each query's trust
             region and expected prior error from it (``adapters/confidence.py``); values set in ``config`` win.
 
@@ -220,7 +222,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
 
     try:
         run_batch(refiner, queries, workers=workers, ray_address=ray_address, progress=progress,
-                  on_result=on_result)
+                  on_result=on_result, batch_size=batch_size)
     finally:
         run.save()
     return report

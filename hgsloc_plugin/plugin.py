@@ -20,7 +20,7 @@ class HGSLocPlugin(Refiner):
     """
 
     def refine_many(self, items: Iterable, *, progress: bool = True, desc: str = "refining", workers: int = 0,
-                    ray_address: str | None = None) -> list[RefineResult]:
+                    ray_address: str | None = None, batch_size: int | None = None) -> list[RefineResult]:
         """Refine many queries in order; one failure is recorded in its result, never raised.
 
         Args:
@@ -29,6 +29,8 @@ class HGSLocPlugin(Refiner):
                 ``max_shift`` / ``max_rotation_deg`` / ``prior_error`` / ``prior_error_deg``: ``Refiner.refine``).
             workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
                 (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
+            batch_size: queries advanced together, their renders sharing launches (:mod:`hgsloc_plugin.lockstep`);
+                1: one at a time; None: the backend's default (``backend.DEFAULT_BATCH_SIZE``). Same poses.
         """
         return run_batch(self, as_queries(items), workers=workers, ray_address=ray_address, progress=progress,
-                         desc=desc)
+                         desc=desc, batch_size=batch_size)

@@ -15,6 +15,10 @@ The pixel's value is the mean over the three channels; a pixel counts when its r
 ``cs`` compares local structure only (invariant to a brightness offset and robust to gain), which is what
 survives between a real photograph and an imperfect map. Sums run in a fixed order (one task per row, then one
 per pose in float64 by ``blend.reduce_kernel``): deterministic.
+
+Query statistics hold Q queries ``[Q, H, W, 3, NQ]``; pose ``b`` of a launch is compared with query
+``query_index[b]`` ([B] int32), so one launch scores the poses of many queries of one size, each pose's numbers
+those of a launch of its own.
 Reference twin: ``tests/reference/render_torch.py::window_cost``.
 """
 
@@ -45,10 +49,12 @@ _WW = [[wi * wj for wj in _W] for wi in _W]  # 2D window (products in double, st
 
 @functools.cache
 def query_stats_kernel():
-    """Query statistics [H, W, 3, NQ]: windowed mean, windowed variance and the pixel itself, per channel."""
+    """Statistics of the query ``q`` [H, W, 3] into slot ``slot`` of ``out`` [Q, H, W, 3, NQ]: windowed mean,
+    windowed variance and the pixel itself, per channel."""
 
     @ti.kernel
-    def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), out: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+    def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), slot: ti.i32,
+                    out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
         H = q.shape[0]
         W = q.shape[1]
         ww = ti.Matrix(_WW, ti.f32)
@@ -64,11 +70,24 @@ def query_stats_kernel():
                         w = ww[i, j]
                         m += w * v
                         m2 += w * v * v
-                out[y, x, c, 0] = m
-                out[y, x, c, 1] = ti.max(m2 - m * m, 0.0)
-                out[y, x, c, 2] = q[y, x, c]
+                out[slot, y, x, c, 0] = m
+                out[slot, y, x, c, 1] = ti.max(m2 - m * m, 0.0)
+                out[slot, y, x, c, 2] = q[y, x, c]
 
     return query_stats
+
+
+@functools.cache
+def copy_query_kernel():
+    """Copy slot ``src_slot`` of query statistics ``src`` [Q1, H, W, 3, NQ] into slot ``dst_slot`` of ``dst``."""
+
+    @ti.kernel
+    def copy_query(src: ti.types.ndarray(dtype=ti.f32, ndim=5), src_slot: ti.i32,
+                   dst: ti.types.ndarray(dtype=ti.f32, ndim=5), dst_slot: ti.i32):
+        for y, x, c, k in ti.ndrange(src.shape[1], src.shape[2], 3, NQ):
+            dst[dst_slot, y, x, c, k] = src[src_slot, y, x, c, k]
+
+    return copy_query
 
 
 @functools.cache
@@ -76,11 +95,13 @@ def horizontal_kernel():
     """First (horizontal) window pass over the rendering: [B, H, W, 3, 3] = filtered r, r^2, r q per channel."""
 
     @ti.kernel
-    def horizontal(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
-                   num_poses: ti.i32, out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
+    def horizontal(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
+                   query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), num_poses: ti.i32,
+                   out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
         H = rgb.shape[1]
         W = rgb.shape[2]
         for b, y, x in ti.ndrange(num_poses, H, W):
+            qi = query_index[b]
             for c in ti.static(range(3)):
                 s1 = 0.0
                 s2 = 0.0
@@ -91,7 +112,7 @@ def horizontal_kernel():
                     w = ti.static(_W[j])
                     s1 += w * r
                     s2 += w * r * r
-                    s3 += w * r * qstats[y, xx, c, 2]
+                    s3 += w * r * qstats[qi, y, xx, c, 2]
                 out[b, y, x, c, 0] = s1
                 out[b, y, x, c, 1] = s2
                 out[b, y, x, c, 2] = s3
@@ -115,14 +136,15 @@ def vertical_moments(hbuf: ti.template(), b, y, x, c, H):
 
 
 @ti.func
-def contrast_structure(hbuf: ti.template(), qstats: ti.template(), b, y, x, c, H):
-    """The cs term at one pixel and channel, ``(2 s_rq + C2) / D`` with ``D = s_rr + s_qq + C2``: returns (cs, D,
-    windowed rendering mean, windowed query mean); shared by the cost and its derivative (``window_grad.py``)."""
+def contrast_structure(hbuf: ti.template(), qstats: ti.template(), qi, b, y, x, c, H):
+    """The cs term at one pixel and channel of pose ``b`` against query slot ``qi``, ``(2 s_rq + C2) / D`` with
+    ``D = s_rr + s_qq + C2``: returns (cs, D, windowed rendering mean, windowed query mean); shared by the cost
+    and its derivative (``window_grad.py``)."""
     m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
-    mq = qstats[y, x, c, 0]
+    mq = qstats[qi, y, x, c, 0]
     s_rr = ti.max(m2 - m * m, 0.0)
     s_rq = mrq - m * mq
-    den = s_rr + qstats[y, x, c, 1] + C2
+    den = s_rr + qstats[qi, y, x, c, 1] + C2
     return (2.0 * s_rq + C2) / den, den, m, mq
 
 
@@ -132,8 +154,9 @@ def vertical_cost_kernel(with_luminance: bool):
     the run-statistics layout that ``blend.reduce_kernel`` sums per pose."""
 
     @ti.kernel
-    def vertical(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
-                 alpha: ti.types.ndarray(dtype=ti.f32, ndim=3), mask_alpha: ti.f32, num_poses: ti.i32,
+    def vertical(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
+                 query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+                 mask_alpha: ti.f32, num_poses: ti.i32,
                  rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
@@ -141,13 +164,14 @@ def vertical_cost_kernel(with_luminance: bool):
         for task in range(num_poses * H * stride):
             is_item, b, y = item(task, stride, H)
             if is_item:
+                qi = query_index[b]
                 tot = 0.0
                 cnt = 0.0
                 for x in range(W):
                     if alpha[b, y, x] >= mask_alpha:
                         v = 0.0
                         for c in ti.static(range(3)):
-                            cs, _, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
+                            cs, _, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
                             if ti.static(with_luminance):
                                 cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
                             v += cs

@@ -44,8 +44,9 @@ def cs_terms_kernel():
     the same numbers as ``window.vertical_cost_kernel(False)``."""
 
     @ti.kernel
-    def cs_terms(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
-                 alpha: ti.types.ndarray(dtype=ti.f32, ndim=3), mask_alpha: ti.f32, num_poses: ti.i32,
+    def cs_terms(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
+                 query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+                 mask_alpha: ti.f32, num_poses: ti.i32,
                  weights: ti.types.ndarray(dtype=ti.f32, ndim=4), means: ti.types.ndarray(dtype=ti.f32, ndim=4),
                  rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
         H = hbuf.shape[1]
@@ -54,13 +55,14 @@ def cs_terms_kernel():
         for task in range(num_poses * H * stride):
             is_item, b, y = item(task, stride, H)
             if is_item:
+                qi = query_index[b]
                 tot = 0.0
                 cnt = 0.0
                 for x in range(W):
                     valid = alpha[b, y, x] >= mask_alpha
                     v = 0.0
                     for c in ti.static(range(3)):
-                        cs, den, m, mq = contrast_structure(hbuf, qstats, b, y, x, c, H)
+                        cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
                         v += cs
                         a = 0.0
                         bw = 0.0
@@ -137,13 +139,15 @@ def system_kernel():
     """Per-row sums of the JtJ triangle and the gradient, unscaled (``2 / (3 n)`` is applied by the caller):
     rows [B, H, 1, NSYS].
 
-    Inputs: rgb [B, H, W, 3], qstats [H, W, 3, NQ] (the query pixel is field 2), drgb and its windowed mean
+    Inputs: rgb [B, H, W, 3], qstats [Q, H, W, 3, NQ] (the query pixel is field 2) read at slot
+    query_index [B], drgb and its windowed mean
     jbar [B, H, W, 3 * 6], weights and their transposed window what [B, H, W, 6], means [B, H, W, 6].
     """
 
     @ti.kernel
-    def system(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=4),
-               drgb: ti.types.ndarray(dtype=ti.f32, ndim=4), jbar: ti.types.ndarray(dtype=ti.f32, ndim=4),
+    def system(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
+               query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), drgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
+               jbar: ti.types.ndarray(dtype=ti.f32, ndim=4),
                weights: ti.types.ndarray(dtype=ti.f32, ndim=4), what: ti.types.ndarray(dtype=ti.f32, ndim=4),
                means: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
                rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
@@ -153,6 +157,7 @@ def system_kernel():
         for task in range(num_poses * H * stride):
             is_item, b, y = item(task, stride, H)
             if is_item:
+                qi = query_index[b]
                 acc = ti.Vector([0.0] * NSYS)
                 for x in range(W):
                     for c in ti.static(range(3)):
@@ -163,7 +168,7 @@ def system_kernel():
                         a = weights[b, y, x, 2 * c]
                         bw = weights[b, y, x, 2 * c + 1]
                         r = rgb[b, y, x, c]
-                        d = r - qstats[y, x, c, 2]
+                        d = r - qstats[qi, y, x, c, 2]
                         gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
                         for i in ti.static(range(NXI)):
                             for j in ti.static(range(i, NXI)):

@@ -22,7 +22,7 @@ LAYERS = {
     "adapters": 3, "working_set": 3, "lod": 3,
     "refine": 4, "evaluate": 4, "noise": 4, "viz": 4,
     "check": 5,
-    "distributed": 5,
+    "distributed": 5, "lockstep": 5,
     "batch": 6,
     "plugin": 7,
     "pipeline": 8,

@@ -246,6 +246,20 @@ class Pool:
     derivative_records: DerivativeRecords | None = None
     lists: TileLists | None = None
     sort_scratch: SortScratch | None = None
+    query_indices: dict[bytes, ti.Ndarray] = field(default_factory=dict)
+
+    def query_index(self, index: np.ndarray) -> ti.Ndarray:
+        """``index`` [B] (int32: each pose's query slot) on the device; the last few are kept, a lockstep batch
+        repeats the same few."""
+        index = np.ascontiguousarray(index, np.int32)
+        key = index.tobytes()
+        nd = self.query_indices.get(key)
+        if nd is None:
+            if len(self.query_indices) >= 64:
+                self.query_indices.clear()
+            nd = self.query_indices[key] = ti.ndarray(ti.i32, (max(1, index.size),))
+            nd.from_numpy(index if index.size else np.zeros(1, np.int32))
+        return nd
 
     def grown(self, cur, batch: int, n: int):
         """(batch, columns) for a per-Gaussian set that must hold ``batch`` poses of ``n`` Gaussians, or None when

@@ -59,25 +59,26 @@ def render_derivatives(r, camera: Camera, poses: list[Pose], background=(0.0, 0.
     return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
 
 
-def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0):
+def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+                  query_index=None):
     """cs cost [B], its gradient [B, 6] and Gauss-Newton Hessian [B, 6, 6] in ``xi`` (float64) of each pose
-    against the query statistics ``qstats`` [H, W, 3, window.NQ]."""
+    against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] at slot ``query_index`` [B] (None: 0)."""
     costs, grads, hessians = [], [], []
     iu = np.triu_indices(NXI)
-    for part in r._chunks(poses, r.grad_chunk):
+    for part, qi in r._query_parts(poses, query_index, r.grad_chunk):
         g = derivative_images(r, camera, part, background)
         n = len(part)
         if g.window is None:
             g.window = WindowGradBuffers.allocate(*g.alpha.shape)
         w = g.window
-        window.horizontal_kernel()(g.rgb, qstats, n, w.h)
-        window_grad.cs_terms_kernel()(w.h, qstats, g.alpha, float(mask_alpha), n, w.wts, w.means, w.rows)
+        window.horizontal_kernel()(g.rgb, qstats, qi, n, w.h)
+        window_grad.cs_terms_kernel()(w.h, qstats, qi, g.alpha, float(mask_alpha), n, w.wts, w.means, w.rows)
         filt = window_grad.filter_kernel
         filt(1, False, 3 * NXI)(g.drgb, n, w.tmpj)
         filt(0, False, 3 * NXI)(w.tmpj, n, w.jbar)
         filt(0, True, 6)(w.wts, n, w.tmp6)
         filt(1, True, 6)(w.tmp6, n, w.hat)
-        window_grad.system_kernel()(g.rgb, qstats, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.sys)
+        window_grad.system_kernel()(g.rgb, qstats, qi, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.sys)
         r._reduce(w.rows, n, w.out2)
         r._reduce(w.sys, n, w.outs)
         sums = read_rows(w.out2, n)

@@ -40,11 +40,12 @@ class RendererLike(Protocol):
         """Photometric statistics [B, Stat.SIZE] float64 of each rendering against ``target``."""
 
     def window_cost(self, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0),
-                    mask_alpha: float = 0.0, luminance: bool = False) -> np.ndarray:
-        """[B, 2] float64: sum of the windowed similarity over valid pixels, and their count."""
+                    mask_alpha: float = 0.0, luminance: bool = False, query_index=None) -> np.ndarray:
+        """[B, 2] float64: sum of the windowed similarity over valid pixels, and their count; pose ``b`` against
+        query slot ``query_index[b]`` of ``qstats`` (default 0)."""
 
     def pose_gradient(self, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0),
-                      mask_alpha: float = 0.0):
+                      mask_alpha: float = 0.0, query_index=None):
         """cs cost [B], gradient [B, 6], Gauss-Newton Hessian [B, 6, 6] in ``xi = (w, v)`` (float64)."""
 
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float,

@@ -146,6 +146,16 @@ class Renderer:
         for s in range(0, len(poses), c):
             yield poses[s:s + c]
 
+    def _query_parts(self, poses: list[Pose], query_index, size: int | None = None):
+        """(poses, device query slots) of consecutive parts of at most ``size`` (default: ``chunk``) poses;
+        ``query_index`` [B] (None: every pose against slot 0)."""
+        qi = np.zeros(len(poses), np.int32) if query_index is None else np.asarray(query_index, np.int32)
+        if qi.shape != (len(poses),):
+            raise ValueError(f"query_index must be [{len(poses)}] (one slot per pose), got {qi.shape}")
+        c = size or self.chunk
+        for s in range(0, len(poses), c):
+            yield poses[s:s + c], self.pool.query_index(qi[s:s + c])
+
     def _workspace(self, camera: Camera, batch: int, grad: bool = False) -> Workspace:
         """The buffers for up to ``batch`` poses at ``camera``'s size and tiling (``grad``: the derivative pass's,
         ``RasterConfig.grad_tile_size``): one per size, reused by every call that fits and grown when one needs
@@ -246,32 +256,47 @@ class Renderer:
     @staticmethod
     def upload_window_query(image: np.ndarray) -> ti.Ndarray:
         """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
-        ([H, W, 3, window.NQ]; ``image`` [H, W, 3] float in [0, 1])."""
+        ([1, H, W, 3, window.NQ]: one query; ``image`` [H, W, 3] float in [0, 1])."""
         q = Renderer.upload_image(image)
         H, W = q.shape[:2]
-        out = ti.ndarray(ti.f32, (H, W, 3, window.NQ))
-        window.query_stats_kernel()(q, out)
+        out = ti.ndarray(ti.f32, (1, H, W, 3, window.NQ))
+        window.query_stats_kernel()(q, 0, out)
+        return out
+
+    @staticmethod
+    def stack_window_queries(stats: Sequence[ti.Ndarray]) -> ti.Ndarray:
+        """Query statistics of one size (each from :meth:`upload_window_query`) stacked on the device:
+        [Q, H, W, 3, window.NQ], query ``k`` in slot ``k`` (for one launch scoring the poses of many queries)."""
+        shapes = {tuple(q.shape[1:]) for q in stats}
+        if len(shapes) != 1 or any(q.shape[0] != 1 for q in stats):
+            raise ValueError(f"stacked queries must be single queries of one size, got {[q.shape for q in stats]}")
+        out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop())
+        copy = window.copy_query_kernel()
+        for k, q in enumerate(stats):
+            copy(q, 0, out, k)
         return out
 
     def window_cost(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
-                    mask_alpha: float = 0.0, luminance: bool = False) -> np.ndarray:
+                    mask_alpha: float = 0.0, luminance: bool = False, query_index=None) -> np.ndarray:
         """Windowed structural similarity of each pose's rendering with the query: [B, 2] float64, the sum over
         valid pixels of the per-pixel value (``cs``, or full SSIM when ``luminance``) and the valid pixel count.
 
         Args:
-            qstats: from :meth:`upload_window_query`, at the camera's size.
+            qstats: from :meth:`upload_window_query` (or :meth:`stack_window_queries`), at the camera's size.
+            query_index: [B] each pose's query slot in ``qstats`` (default: all 0). A pose's numbers do not depend
+                on the other poses of the call.
         """
         _check_query_size(qstats, camera)
         out = []
-        for part in self._chunks(poses):
+        for part, qi in self._query_parts(poses, query_index):
             ws = self._blend_images(camera, part, background, min(len(poses), self.chunk))
             im = ws.images
             if ws.window is None:
                 ws.window = WindowBuffers.allocate(ws.batch, camera.height, camera.width)
             w = ws.window
             n = len(part)
-            window.horizontal_kernel()(im.rgb, qstats, n, w.h)
-            window.vertical_cost_kernel(bool(luminance))(w.h, qstats, im.alpha, float(mask_alpha), n, w.rows)
+            window.horizontal_kernel()(im.rgb, qstats, qi, n, w.h)
+            window.vertical_cost_kernel(bool(luminance))(w.h, qstats, qi, im.alpha, float(mask_alpha), n, w.rows)
             self._reduce(w.rows, n, w.out)
             out.append(read_rows(w.out, n))
         return np.concatenate(out)
@@ -318,15 +343,15 @@ class Renderer:
         return derivatives.render_derivatives(self, camera, poses, background)
 
     def pose_gradient(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
-                      mask_alpha: float = 0.0):
+                      mask_alpha: float = 0.0, query_index=None):
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
-        grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``: from
-        :meth:`upload_window_query` at the camera's size; the cost equals :meth:`window_cost`'s ``1 - mean``."""
+        grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
+        :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
         _check_query_size(qstats, camera)
-        return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha)
+        return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
 
 
 def _check_query_size(qstats, camera: Camera) -> None:
-    if tuple(qstats.shape[:2]) != (camera.height, camera.width):
-        raise ValueError(f"query statistics are {tuple(qstats.shape[:2])}, camera needs "
-                         f"({camera.height}, {camera.width})")
+    if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
+        raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs "
+                         f"(Q, {camera.height}, {camera.width}, 3, {window.NQ})")

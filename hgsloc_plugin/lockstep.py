@@ -1,0 +1,269 @@
+"""Lockstep batches: many queries refined together, their renders in shared launches.
+
+Each query of a batch runs in a worker thread whose refiner renders through a :class:`DeviceProxy`: every
+device call is handed to the thread that runs the batch, and the worker waits for its answer. When every live
+query waits, that thread serves one round: the calls that cannot be batched (query uploads and the like) if any
+wait, else the largest group of ``window_cost`` or ``pose_gradient`` calls of one renderer, camera and settings,
+in one launch (their query statistics stacked on the device, each pose scored against its own query:
+``Renderer.stack_window_queries``); the queries served resume, the others wait for a later round, so queries
+that fell out of step meet again at a common call. So:
+
+- the host talks to the device once per step of the batch, not once per render call of each query;
+- Taichi is only ever called from one thread (CUDA contexts are per thread), one call at a time;
+- a pose's numbers do not depend on the other poses of its launch, so every query's poses equal those of one
+  query at a time, whatever the batch size or the order in which queries finish.
+
+A query that finishes leaves the batch and the next one takes its place; at most ``batch_size`` are live.
+Working sets (maps of ``RefineConfig.working_set_min`` Gaussians or more) are per query, so there each query's
+calls go alone: the same poses, no shared launches.
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .render.renderer import Renderer
+
+#: the batched calls, and how each one's keyword values are read from its arguments
+_BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
+
+
+class BatchCancelled(RuntimeError):
+    """Raised in a query's worker when its batch stops early (an error in the caller, an interrupt)."""
+
+
+@dataclass(eq=False)
+class _Slot:
+    """One live query: its job, the device call it waits on, the call's answer and, at the end, its result."""
+
+    job: Callable[[], object]
+    request: tuple | None = None  # (target, method name, args, kwargs)
+    reply: tuple | None = None  # (ok, value or exception)
+    finished: bool = False
+    result: object = None
+    resume: threading.Event = field(default_factory=threading.Event)
+
+
+class Lockstep:
+    """Runs jobs (one query each) in lockstep on one device; see the module docstring.
+
+    Args:
+        batch_size: live queries at most (the memory bound: a launch holds up to this many queries' poses).
+    """
+
+    def __init__(self, batch_size: int):
+        if int(batch_size) != batch_size or batch_size < 1:
+            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        self.batch_size = int(batch_size)
+        self._cond = threading.Condition()
+        self._cancelled = False
+        self._stacks: dict[tuple, tuple[list, object]] = {}
+        self.launches = 0  # device calls served (a batched launch counts once)
+        self.requests = 0  # device calls the queries made
+
+    def run(self, jobs: Iterable[tuple[object, Callable[[DeviceProxy], object]]]) -> Iterator[tuple[object, object]]:
+        """(key, result) of each job as it finishes; a job is ``(key, fn)`` and ``fn(proxy_factory)`` runs in a
+        worker thread, where ``proxy_factory(renderer)`` gives that job's :class:`DeviceProxy` of a renderer."""
+        pending = iter(jobs)
+        live: list[tuple[object, _Slot]] = []
+        exhausted = False
+        try:
+            while True:
+                while not exhausted and len(live) < self.batch_size:
+                    nxt = next(pending, None)
+                    if nxt is None:
+                        exhausted = True
+                        break
+                    live.append((nxt[0], self._start(nxt[1])))
+                if not live:
+                    return
+                self._wait_all([s for _, s in live])
+                for key, s in live:
+                    if s.finished:
+                        if isinstance(s.result, BaseException):
+                            raise s.result
+                        yield key, s.result
+                live = [(k, s) for k, s in live if not s.finished]
+                self._serve([s for _, s in live])
+        finally:
+            self._cancel([s for _, s in live])
+
+    def _wait_all(self, slots: list[_Slot]) -> None:
+        """Until every live query waits on a device call or has finished."""
+        with self._cond:
+            self._cond.wait_for(lambda: all(s.finished or s.request is not None for s in slots))
+
+    # ---- workers ----
+
+    def _start(self, fn: Callable) -> _Slot:
+        slot = _Slot(fn)
+
+        def work():
+            try:
+                slot.result = fn(lambda renderer: DeviceProxy(self, slot, renderer))
+            except BaseException as exc:  # noqa: BLE001 - handed to the batch's thread, raised there
+                slot.result = exc
+            finally:
+                with self._cond:
+                    slot.finished = True
+                    self._cond.notify_all()
+
+        threading.Thread(target=work, name="hgsloc-lockstep", daemon=True).start()
+        return slot
+
+    def call(self, slot: _Slot, target, name: str, args: tuple, kwargs: dict):
+        """Run ``target.name(*args, **kwargs)`` on the batch's thread (from a worker); returns its value."""
+        with self._cond:
+            if self._cancelled:
+                raise BatchCancelled("the batch was stopped")
+            slot.request = (target, name, args, kwargs)
+            self._cond.notify_all()
+        slot.resume.wait()
+        slot.resume.clear()
+        ok, value = slot.reply
+        slot.reply = None
+        if not ok:
+            raise value
+        return value
+
+    def _cancel(self, slots: list[_Slot]) -> None:
+        """Answer every waiting worker with :class:`BatchCancelled` so that its thread ends."""
+        with self._cond:
+            self._cancelled = True
+            for s in slots:
+                if s.request is not None and not s.finished:
+                    s.request, s.reply = None, (False, BatchCancelled("the batch was stopped"))
+                    s.resume.set()
+
+    # ---- the device thread ----
+
+    def _serve(self, slots: list[_Slot]) -> None:
+        """Serve one round: every waiting call that cannot be batched (uploads and the like: cheap, and each
+        moves its query on to its next render) when there are any, else the largest group of batchable calls
+        (the first met on a tie); then wake the queries served. The others keep waiting, so queries that fell
+        out of step (different routes, iteration counts) meet again at a common call instead of each taking
+        a launch of its own."""
+        if not slots:
+            return
+        groups: dict[object, list[_Slot]] = {}
+        singles = []
+        for s in slots:
+            key = _batch_key(*s.request)
+            if key is None:
+                singles.append(s)
+            else:
+                groups.setdefault(key, []).append(s)
+        if singles:
+            for s in singles:
+                s.reply = _invoke(*s.request)
+            served = singles
+        else:
+            served = max(groups.values(), key=len)  # max keeps the first of equal lengths
+            self._launch(served) if len(served) > 1 else setattr(served[0], "reply", _invoke(*served[0].request))
+        self.requests += len(served)
+        self.launches += len(singles) or 1
+        for s in served:
+            s.request = None
+            s.resume.set()
+
+    def _launch(self, group: list[_Slot]) -> None:
+        """One launch for the calls of ``group`` (same renderer, method, camera and settings)."""
+        target, name, _, _ = group[0].request
+        calls = [_BATCHED[name].bind(None, *s.request[2], **s.request[3]).arguments for s in group]
+        stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
+        slot_of = {id(q): k for k, q in enumerate(stats)}
+        poses = [p for c in calls for p in c["poses"]]
+        index = np.concatenate([np.full(len(c["poses"]), slot_of[id(c["qstats"])], np.int32) for c in calls])
+        args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
+        try:
+            out = getattr(target, name)(poses=poses, qstats=self._stacked(target, stats), query_index=index, **args)
+        except Exception:  # noqa: BLE001 - each call then gets its own answer (and its own error)
+            for s in group:
+                s.reply = _invoke(*s.request)
+            return
+        ends = np.cumsum([len(c["poses"]) for c in calls])[:-1]
+        parts = (zip(*(np.split(a, ends) for a in out)) if isinstance(out, tuple)
+                 else np.split(out, ends))
+        for s, part in zip(group, parts):
+            s.reply = (True, part)
+
+    def _stacked(self, target, stats: list):
+        """The queries' statistics stacked in one device array (the last few stacks are kept: a lockstep batch
+        meets the same groups step after step)."""
+        key = tuple(id(q) for q in stats)
+        hit = self._stacks.get(key)
+        if hit is not None and all(a is b for a, b in zip(hit[0], stats)):
+            return hit[1]
+        if len(self._stacks) >= 16:
+            self._stacks.clear()
+        stacked = target.stack_window_queries(stats)
+        self._stacks[key] = (stats, stacked)  # the references keep the ids unique while cached
+        return stacked
+
+
+def _batch_key(target, name: str, args: tuple, kwargs: dict):
+    """What calls must share to go into one launch, or None when this one goes alone."""
+    if name not in _BATCHED or not isinstance(target, Renderer):
+        return None
+    try:
+        a = _BATCHED[name].bind(None, *args, **kwargs)
+    except TypeError:
+        return None
+    a.apply_defaults()
+    a = a.arguments
+    if a["query_index"] is not None or a["qstats"].shape[0] != 1:
+        return None
+    return (id(target), name, a["camera"], tuple(float(v) for v in np.ravel(a["background"])),
+            float(a["mask_alpha"]), bool(a.get("luminance", False)))
+
+
+def _invoke(target, name: str, args: tuple, kwargs: dict) -> tuple:
+    try:
+        return True, getattr(target, name)(*args, **kwargs)
+    except Exception as exc:  # noqa: BLE001 - raised again in the worker
+        return False, exc
+
+
+def refine_queries(refiner, queries: Iterable, batch_size: int = 1, gate: Lockstep | None = None):
+    """(query, result) pairs of ``batch.Query`` objects as they finish, in this process: one at a time
+    (``batch_size`` 1) or ``batch_size`` queries in lockstep (:class:`Lockstep`: the same poses; ``gate``: a
+    ready one, whose counts of device calls the caller reads)."""
+    if batch_size <= 1 and gate is None:
+        for q in queries:
+            yield q, q.refine_with(refiner)
+        return
+
+    def job(q):
+        def fn(proxy):
+            mine = copy.copy(refiner)  # the same settings, rendering through this query's proxy
+            mine.renderer = proxy(refiner.renderer)
+            return q.refine_with(mine)
+
+        return q, fn
+
+    yield from (gate or Lockstep(batch_size)).run(job(q) for q in queries)
+
+
+class DeviceProxy:
+    """A renderer seen from a lockstep worker: its methods run on the batch's thread (their renderers come back
+    as proxies too); plain attributes (``n``, ``config``, ``source_index``) are read directly."""
+
+    def __init__(self, gate: Lockstep, slot: _Slot, target):
+        self._gate, self._slot, self._target = gate, slot, target
+
+    def __getattr__(self, name: str):
+        value = getattr(self._target, name)
+        if not callable(value):
+            return value
+
+        def call(*args, **kwargs):
+            out = self._gate.call(self._slot, self._target, name, args, kwargs)
+            return DeviceProxy(self._gate, self._slot, out) if isinstance(out, Renderer) else out
+
+        return call

@@ -1,0 +1,140 @@
+"""Many queries per launch: stacked query statistics in the cost and derivative kernels, and lockstep batches
+(``hgsloc_plugin/lockstep.py``) returning the poses of one query at a time, on real photos first."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hgsloc_plugin as hp
+from hgsloc_plugin.batch import as_queries
+from hgsloc_plugin.image import resize_image
+from hgsloc_plugin.lockstep import Lockstep, refine_queries
+from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.render import get_renderer
+
+from .conftest import random_scene, room_query
+from .test_trust import SNOW, _snow
+
+
+@pytest.fixture(scope="module")
+def room():
+    """(scene, camera, query image, prior) of a small synthetic room."""
+    cam = hp.Camera.from_focal(96, 72, 70.0)
+    scene, _, img, prior = room_query(cam, pose_seed=5, noise_deg=1.0, noise_shift=0.03, noise_seed=2)
+    return scene, cam, img, prior
+
+
+def _stack_case():
+    """A scene, a camera, three query images and two poses per query."""
+    scene = random_scene(n=300, seed=4)
+    cam = hp.Camera(48, 40, 50.0, 50.0, 24.0, 20.0)
+    rng = np.random.default_rng(3)
+    base = [se3_noise(hp.Pose.identity(), 2.0, 0.05, rng) for _ in range(3)]
+    images = hp.render(scene, cam, base)
+    poses = [[se3_noise(b, 1.0, 0.02, rng) for _ in range(2)] for b in base]
+    return scene, cam, images, poses
+
+
+def test_stacked_queries_score_each_pose_as_its_own_launch():
+    """One launch over three queries' poses (query statistics stacked, a slot per pose) gives every pose the
+    cost, gradient and Gauss-Newton matrix of a launch of its own query, bit for bit; the slots matter (a pose
+    scored against another query's slot differs)."""
+    scene, cam, images, poses = _stack_case()
+    r = get_renderer(scene)
+    stats = [r.upload_window_query(im) for im in images]
+    stacked = r.stack_window_queries(stats)
+    assert tuple(stacked.shape[:3]) == (3, cam.height, cam.width)
+    flat = [p for ps in poses for p in ps]
+    index = np.repeat(np.arange(3), 2)
+    got = r.window_cost(cam, flat, stacked, query_index=index)
+    want = np.concatenate([r.window_cost(cam, ps, q) for ps, q in zip(poses, stats)])
+    np.testing.assert_array_equal(got, want)
+    c, g, h = r.pose_gradient(cam, flat, stacked, query_index=index)
+    parts = [r.pose_gradient(cam, ps, q) for ps, q in zip(poses, stats)]
+    np.testing.assert_array_equal(c, np.concatenate([p[0] for p in parts]))
+    np.testing.assert_array_equal(g, np.concatenate([p[1] for p in parts]))
+    np.testing.assert_array_equal(h, np.concatenate([p[2] for p in parts]))
+    wrong = r.window_cost(cam, flat, stacked, query_index=index[::-1].copy())
+    assert not np.array_equal(wrong, got)
+    with pytest.raises(ValueError, match="query_index"):
+        r.window_cost(cam, flat, stacked, query_index=index[:3])
+
+
+def test_stacking_rejects_mixed_sizes():
+    scene, cam, images, _ = _stack_case()
+    r = get_renderer(scene)
+    small = resize_image(images[1], 24, 20)
+    with pytest.raises(ValueError, match="one size"):
+        r.stack_window_queries([r.upload_window_query(images[0]), r.upload_window_query(small)])
+
+
+def _record(res) -> dict:
+    d = res.to_dict()
+    d.pop("seconds")
+    for p in d["polish"]:
+        p.pop("seconds", None)
+    return d
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SNOW / "snow_sharp.ply").exists(), reason="../shared/data/snow not present")
+def test_real_photos_batched_equal_one_at_a_time():
+    """Snow photos on the sharp map, queries that take different routes and finish at different steps (2 % / 1
+    deg priors: the gradient route; 8 % / 4 deg: the search) and one bad image: in lockstep batches of 3 (so a
+    finished query makes room for the next) every result equals the one-at-a-time result field for field, in input
+    order, the bad image fails alone, and launches serve several queries' calls at once."""
+    scene, cam, queries = _snow("snow_sharp.ply")
+    rng = np.random.default_rng(21)
+    items = []
+    for k, (name, gt, img, depth) in enumerate(queries[:4]):
+        far = k == 1
+        items.append((img, cam, se3_noise(gt, 4.0 if far else 1.0, (0.08 if far else 0.02) * depth, rng), name))
+    items.insert(2, (np.zeros((5, 5, 3)), cam, items[0][2], "bad"))
+    refiner = hp.HGSLocPlugin(scene)
+    one = refiner.refine_many(items, progress=False, batch_size=1)
+    gate = Lockstep(3)
+    pairs = list(refine_queries(refiner, as_queries(items), gate=gate))
+    batched = [res for _, res in sorted(pairs, key=lambda qr: qr[0].index)]
+    assert [r.name for r in batched] == [it[3] for it in items]
+    assert batched[2].error and "bad" == batched[2].name and not any(r.error for k, r in enumerate(batched) if k != 2)
+    assert one[1].route != one[0].route  # the far prior went on to the search: the batch's queries diverged
+    for a, b in zip(one, batched):
+        assert _record(a) == _record(b), a.name
+    assert gate.launches < gate.requests  # calls of several queries shared launches
+    default = refiner.refine_many(items[:2], progress=False)  # the backend's default batch size
+    assert [_record(r) for r in default] == [_record(r) for r in one[:2]]
+
+
+def test_stopped_batch_releases_its_workers(room):
+    """A caller that stops reading a batch (an error in its callback) leaves no worker thread waiting."""
+    scene, cam, img, gt = room
+    refiner = hp.HGSLocPlugin(scene)
+    before = threading.active_count()
+    queries = as_queries([(img, cam, gt, f"q{k}") for k in range(4)])
+    it = refine_queries(refiner, queries, batch_size=2)
+    next(it)
+    it.close()
+    for t in threading.enumerate():
+        if t.name == "hgsloc-lockstep":
+            t.join(timeout=30)
+    assert threading.active_count() == before
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, True])
+def test_batch_size_must_be_a_positive_integer(room, bad):
+    scene, cam, img, gt = room
+    with pytest.raises(ValueError, match="batch_size"):
+        hp.HGSLocPlugin(scene).refine_many([(img, cam, gt)], progress=False, batch_size=bad)
+
+
+def test_cli_rejects_a_zero_batch_size(tmp_path: Path):
+    p = subprocess.run([sys.executable, "-m", "hgsloc_plugin.cli", "refine", "--scene", "x.ply", "--poses", "p.txt",
+                        "--images", ".", "--out", str(tmp_path / "o.txt"), "--batch-size", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "--batch-size" in p.stderr and p.stdout == ""

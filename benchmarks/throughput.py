@@ -1,7 +1,7 @@
 """Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
-                                       [--batch-size N] [--out FILE]
+                                       [--batch-size N] [--shaped-queries N] [--out FILE]
 
 One process, one run. Per case, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
@@ -9,9 +9,10 @@ One process, one run. Per case, real photos first:
 - ``lego``: 5 held-out renders (white background), the same priors;
 - ``room`` / ``room_x20``: the demo room (49k Gaussians) and the room densified 20x (975k), 3 photo-degraded
   queries at 320x240;
-- ``7scenes_shaped``: a 7-Scenes-shaped job: the room, 6 photo-degraded queries at 640x480 (7-Scenes' size), priors
-  with the camera-frame errors of the real ACE (queries 0-2) and Marepo (3-5) 7-Scenes estimates against the SfM
-  pseudo ground truth (``../shared/data/poses/7scenes``, one drawn per query; metres, as 7-Scenes).
+- ``7scenes_shaped``: a 7-Scenes-shaped job: the room, ``--shaped-queries`` (6) photo-degraded queries at 640x480
+  (7-Scenes' size), priors with the camera-frame errors of the real ACE (first half) and Marepo (second half)
+  7-Scenes estimates against the SfM pseudo ground truth (``../shared/data/poses/7scenes``, one drawn per query;
+  metres, as 7-Scenes).
 
 Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, median of 15, on
 the renderer the refinement uses, measured in this process before the queries) and per pose of a 12-pose batch,
@@ -77,9 +78,9 @@ def shaped_priors(qs) -> list[hp.Pose]:
     return out
 
 
-def load(case: str):
-    if case == "7scenes_shaped":  # the room, 6 queries at 640x480 (7-Scenes' size)
-        return room_case(1, n=6, scale=2.0)
+def load(case: str, shaped_queries: int = 6):
+    if case == "7scenes_shaped":  # the room, queries at 640x480 (7-Scenes' size)
+        return room_case(1, n=shaped_queries, scale=2.0)
     if case.startswith("room"):
         return room_case(int(case.split("_x")[1]) if "_x" in case else 1)
     out = load_dataset(case)
@@ -147,8 +148,8 @@ def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int) -> tuple[lis
     return [r for _, r in pairs], (time.perf_counter() - t0) / len(items), gate
 
 
-def run(case: str, pct: float, deg: float, batch_size: int) -> tuple[str, str] | None:
-    loaded = load(case)
+def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6) -> tuple[str, str] | None:
+    loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
         return None
@@ -197,6 +198,7 @@ def main() -> None:
     ap.add_argument("--noise", default="2,1", help="prior size: percent of the median depth (cm on the room), "
                                                    "degrees")
     ap.add_argument("--batch-size", type=int, help="queries per lockstep batch (default: the backend's)")
+    ap.add_argument("--shaped-queries", type=int, default=6, help="queries of the 7-Scenes-shaped job")
     ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
     a = ap.parse_args()
     pct, deg = (float(x) for x in a.noise.split(","))
@@ -210,7 +212,7 @@ def main() -> None:
             "| batched s / query | batched speed | device calls / query | same poses |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    done = [r for r in (run(c, pct, deg, bs) for c in a.cases) if r]
+    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries) for c in a.cases) if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/basin.py [--cases snow_sharp snow lego room donut] [--queries 6] [--wide 16,8]
                                   [--rows ROW ...] [--out FILE]
+       python benchmarks/basin.py --agreement [--cases ...] [--rows ...]
 
 One run. Real photos first: the 6 snow photos on the good map (``snow_sharp.ply``) and on the imperfect one
 (``snow.ply``), then lego's held-out renders, the demo room and the donut (photo-degraded renders). Lengths are in
@@ -14,6 +15,11 @@ depth), and DFNet's tail (query k of n gets the error at the k-th of n quantiles
 to the 95th percentile). Columns: the share within 1 cm-eq / 0.5 deg, within 2 cm-eq / 0.5 deg (1 % of the
 depth) and within 5 cm-eq / 5 deg before and after, queries ending worse than their prior (any amount), queries
 that searched (the usual or the wide search), renders per query, seconds per query.
+
+``--agreement``: every query whose usual search is refused, with the wide search run whatever the routes found
+(``same_minimum_pixels=0``): the gradient route's and the search's refusal reasons, how far apart their poses are
+(image motion at the final size), and what the wide search returned (the evidence for
+``RefineConfig.same_minimum_pixels``). Default rows: 1, 15, 30, 40, 60 cm-eq and DFNet's tail.
 """
 
 from __future__ import annotations
@@ -107,6 +113,52 @@ def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = Non
     return lines
 
 
+def agreement(name: str, n: int, rows: list[str] | None) -> list[str]:
+    """Markdown rows (``--agreement``) of the queries of case ``name`` that reached the wide search."""
+    from hgsloc_plugin.refine import refiner as refiner_mod
+
+    case = CASES[name](n)
+    if case is None:
+        return []
+    _, scene, cam, gts, imgs, scale, bg = case
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg, same_minimum_pixels=0.0))
+    routes: list = []
+    judged = refiner_mod.Refiner._judged
+
+    def recording(self, ctx, cand):
+        out = judged(self, ctx, cand)
+        routes.append((cand.pose, out[1].rejected, ctx.plan))
+        return out
+
+    refiner_mod.Refiner._judged = recording
+    lines = []
+    try:
+        for row, ps in priors(gts, scale).items():
+            if row not in (rows or AGREEMENT_ROWS):
+                continue
+            for k, (g, img, p, s) in enumerate(zip(gts, imgs, ps, scale)):
+                routes.clear()
+                r = refiner.refine(img, cam, p)
+                if len(routes) < 3:
+                    continue
+                (pg, why_g, plan), (ps_, why_s, _) = routes[0], routes[1]
+                f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
+                shift, deg = pg.errors_to(ps_)
+                px = shift / plan.depth * f + np.radians(deg) * f
+                t, a = r.pose.errors_to(g)
+                line = (f"| {name} | {row} | {k} | {why_g} | {why_s} | {px:.2f} | "
+                        f"{'accepted' if r.accepted else routes[2][1]} | {t * s:.2f} / {a:.2f} | {r.renders} |")
+                print(line, flush=True)
+                lines.append(line)
+    finally:
+        refiner_mod.Refiner._judged = judged
+    return lines
+
+
+AGREEMENT_ROWS = ("1 cm-eq / 0.5 deg", "15 cm-eq / 5 deg", "30 cm-eq / 8 deg", "40 cm-eq / 10 deg",
+                  "60 cm-eq / 15 deg", TAIL)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
@@ -115,7 +167,14 @@ def main() -> None:
                                    "config's)")
     ap.add_argument("--rows", nargs="+", help="only these rows (e.g. '30 cm-eq / 8 deg')")
     ap.add_argument("--out", type=Path, help="also write the tables as Markdown here")
+    ap.add_argument("--agreement", action="store_true", help="only the routes' agreement before a wide search")
     a = ap.parse_args()
+    if a.agreement:
+        print("| case | prior | query | gradient route | search | apart (px) | wide search | after (cm-eq / deg) "
+              "| renders |\n|---|---|---|---|---|---|---|---|---|", flush=True)
+        for c in a.cases:
+            agreement(c, a.queries, a.rows)
+        return
     wide = () if a.wide == "off" else tuple(float(x) for x in a.wide.split(",")) if a.wide else None
     config = hp.RefineConfig(**({"wide_step_pixels": wide} if wide is not None else {}))
     arch = hp.init()

@@ -50,6 +50,10 @@ class RefineConfig:
             trust region ``trust_steps`` times the first of them; needs the polish; (): off.
         wide_max_side: the wide search's scoring size (longest side, pixels): its lattice levels and the first
             stage of its polish score there, where the cost falls towards the truth from tens of pixels away.
+        same_minimum_pixels: no wide search when the gradient route and the search were both refused, neither at
+            the trust region's edge, at poses this close (image motion at the final size): two explorations that
+            end in one minimum found the map's own minimum near the prior (its floor), not a far prior's plateau
+            (``benchmarks/basin.md``); 0: the wide search after every refused search.
         mask_alpha: ignore pixels whose rendered alpha is below this.
         background: RGB behind the Gaussians (the map's training background).
         resize_query: resize a query whose size differs from its camera's instead of raising.
@@ -88,6 +92,7 @@ class RefineConfig:
     search: bool = True
     wide_step_pixels: tuple[float, ...] = (16.0, 8.0)
     wide_max_side: int = 32
+    same_minimum_pixels: float = 1.0
     mask_alpha: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     resize_query: bool = False
@@ -134,6 +139,8 @@ class RefineConfig:
         object.__setattr__(self, "wide_step_pixels", tuple(float(x) for x in self.wide_step_pixels))
         if not self.wide_max_side >= 16:
             raise ValueError(f"wide_max_side must be >= 16, got {self.wide_max_side!r}")
+        if not (self.same_minimum_pixels >= 0 and math.isfinite(self.same_minimum_pixels)):
+            raise ValueError(f"same_minimum_pixels must be a number >= 0, got {self.same_minimum_pixels!r}")
         object.__setattr__(self, "background", tuple(float(x) for x in self.background))
 
     @staticmethod

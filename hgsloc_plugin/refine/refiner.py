@@ -26,7 +26,7 @@ from .plan import Plan, make_plan
 from .result import RefineResult
 from .routes import Candidate, QueryContext, gradient_route, search_route, wide_search_route
 from .scorer import Scorer
-from .trust import Verdict, judge
+from .trust import TRUST_REGION_EDGE, Verdict, judge
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -97,6 +97,10 @@ class Refiner:
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
         if (cfg.wide_step_pixels and cfg.search and cfg.polishes and cfg.neighbourhood == "lattice" and not cfg.levels
                 and not tried[-1][1].ends_refinement()):
+            if _same_minimum(tried, plan, cfg.same_minimum_pixels):
+                logger.debug("query %s: gradient route and search refused in one minimum (%s); no wide search", name,
+                             tried[-1][1].rejected)
+                return _result(ctx, tried, time.perf_counter() - t0)
             logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
             ctx = dataclasses.replace(ctx, plan=make_plan(cfg, self.scene, camera, coarse_pose, prior,
                                                           cfg.wide_step_pixels))
@@ -134,6 +138,20 @@ class Refiner:
             logger.warning("query %s failed: %s", name, exc)
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,
                                        time.perf_counter() - t0)
+
+
+def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
+    """Whether the gradient route and the search were both refused, neither at the trust region's edge, at poses
+    within ``pixels`` of image motion at the final size (centre shift at the plan's depth plus rotation): the
+    map's own minimum near the prior, where a wide search finds nothing else (``RefineConfig.same_minimum_pixels``)."""
+    if len(tried) != 2 or tried[0][0].route != "gradient" or not pixels > 0:
+        return False
+    if any(v.rejected in (None, TRUST_REGION_EDGE) for _, v in tried):
+        return False
+    cam = plan.cam_final
+    f = 0.5 * (cam.fx + cam.fy)
+    shift, deg = tried[0][0].pose.errors_to(tried[1][0].pose)
+    return shift / plan.depth * f + math.radians(deg) * f <= pixels
 
 
 def _query_prior(prior: QueryPrior | None, settings: dict) -> QueryPrior:

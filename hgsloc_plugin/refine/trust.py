@@ -34,6 +34,7 @@ if TYPE_CHECKING:
 #: ``Verdict.rejected`` when the fusion with a prior of known error is no better than the prior (its cost is not
 #: lower) or the refined pose's uncertainty is unbounded
 PRIOR_MORE_PRECISE = "prior more precise"
+TRUST_REGION_EDGE = "trust-region edge"
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -147,7 +148,7 @@ def _shape_reason(alignment: float, sharpness: float, travel: float, level_shift
     if not sharpness >= MIN_SHARPNESS:
         return "flat valley"
     if travel > EDGE_FRACTION:
-        return "trust-region edge"
+        return TRUST_REGION_EDGE
     if level_shift > MAX_LEVEL_SHIFT:
         return "level inconsistency"
     return None

@@ -1,6 +1,7 @@
 """Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set vs routes.
 
 Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
+       python benchmarks/map_scale.py --stages [--k 1 20]
 
 The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
 shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
@@ -23,6 +24,10 @@ Columns: ms per render (14 poses per call at the default scoring size, 200x150, 
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
 largest selection of a query, median) and selections per query,
 renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
+
+``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at
+the final scoring size, one pose, median of 15): projection, tile sort, blending, with the Gaussians rendered
+(the working set) and those visible (touching a tile).
 """
 
 from __future__ import annotations
@@ -102,6 +107,46 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+def stages(k: int) -> str:
+    """One Markdown row: a render's time split by kernel stage on the room densified ``k`` times."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.demo.queries import query_poses
+    from hgsloc_plugin.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.refine.plan import make_plan
+
+    room = make_room_scene()
+    scene = densify(room, k) if k > 1 else room
+    prior = query_poses(1, seed=1)[0]
+    refiner = hp.HGSLocPlugin(scene)
+    plan = make_plan(refiner.config, scene, QUERY_CAMERA, prior, hp.QueryPrior())
+    r = refiner._working_set(plan)
+    r = r.covering([prior]) if hasattr(r, "covering") else r
+    cam, bg = plan.cam_final, (0.0, 0.0, 0.0)
+    ws = r._workspace(cam, 1)
+    g, rec = r.gaussians, r.pool.records
+
+    def project():
+        r._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.campos, ws.intrin, cam.width,
+                   cam.height, ws.tile, 1, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
+
+    def ms(fn) -> float:
+        fn()
+        times = []
+        for _ in range(15):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return 1000 * float(np.median(times))
+
+    full = ms(lambda: r.render_full(cam, [prior], bg))
+    geometry = ms(lambda: r._geometry(cam, [prior], ws, bg))
+    proj = ms(project)
+    visible = int((rec.ntiles.to_numpy()[0] > 0).sum())
+    return (f"| {scene.num_gaussians:,} | {r.n:,} | {visible:,} | {full:.1f} | {proj:.1f} | {geometry - proj:.1f} | "
+            f"{full - geometry:.1f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--k", nargs="+", type=int, default=[1, 4, 10, 20])
@@ -110,8 +155,15 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--paths", nargs="+", default=list(DEFAULT_PATHS), choices=list(PATHS), metavar="PATH",
                     help=f"paths to compare, the first is the speed-up reference (any of {list(PATHS)})")
+    ap.add_argument("--stages", action="store_true", help="only split one render's time by stage at each --k")
     ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.stages:
+        print("| Gaussians | rendered (working set) | visible | render (ms) | projection | tile sort | blending "
+              "(and read-back) |\n|---|---|---|---|---|---|---|", flush=True)
+        for k in a.k:
+            print(stages(k), flush=True)
+        return
     if a.child:
         print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise)))
         return

@@ -334,8 +334,10 @@ class Renderer:
 
     @property
     def grad_chunk(self) -> int:
-        """Poses per derivative launch (the per-Gaussian derivative records take 30 floats per pose)."""
-        return max(1, min(4, 4_000_000 // self.n))
+        """Poses per derivative launch (the per-Gaussian derivative records take 30 floats per pose): at most 4
+        on the CPU, 32 on CUDA (the derivative passes of a lockstep batch in one launch); a pose's numbers do not
+        depend on the others of its launch."""
+        return max(1, min(32 if current_arch() == "cuda" else 4, 4_000_000 // self.n))
 
     def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
         """Colour [B, H, W, 3], alpha [B, H, W] and the colour's derivatives [B, H, W, 3, 6] with respect to the

@@ -34,8 +34,9 @@ from .render.renderer import Renderer
 _BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
 
 
-class BatchCancelled(RuntimeError):
-    """Raised in a query's worker when its batch stops early (an error in the caller, an interrupt)."""
+class BatchCancelled(BaseException):
+    """Raised in a query's worker when its batch stops early (an error in the caller, an interrupt); like
+    ``KeyboardInterrupt`` it is not an ``Exception``, so the query ends without being recorded as failed."""
 
 
 @dataclass(eq=False)

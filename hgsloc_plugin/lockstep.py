@@ -43,7 +43,7 @@ class BatchCancelled(BaseException):
 class _Slot:
     """One live query: its job, the device call it waits on, the call's answer and, at the end, its result."""
 
-    job: Callable[[], object]
+    job: Callable[..., object]
     request: tuple | None = None  # (target, method name, args, kwargs)
     reply: tuple | None = None  # (ok, value or exception)
     finished: bool = False
@@ -72,6 +72,7 @@ class Lockstep:
         """(key, result) of each job as it finishes; a job is ``(key, fn)`` and ``fn(proxy_factory)`` runs in a
         worker thread, where ``proxy_factory(renderer)`` gives that job's :class:`DeviceProxy` of a renderer."""
         pending = iter(jobs)
+        self._cancelled = False  # a gate runs batch after batch (its counts add up)
         live: list[tuple[object, _Slot]] = []
         exhausted = False
         try:

@@ -138,3 +138,18 @@ def test_cli_rejects_a_zero_batch_size(tmp_path: Path):
                         "--images", ".", "--out", str(tmp_path / "o.txt"), "--batch-size", "0"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and "--batch-size" in p.stderr and p.stdout == ""
+
+
+def test_a_gate_runs_batch_after_batch(room):
+    """One :class:`Lockstep` serves a second batch after the first ended (its counts add up), with the poses of
+    one query at a time."""
+    scene, cam, img, prior = room
+    refiner = hp.HGSLocPlugin(scene)
+    queries = as_queries([(img, cam, prior, "a"), (img, cam, prior, "b")])
+    gate = Lockstep(2)
+    first = [r for _, r in refine_queries(refiner, queries, gate=gate)]
+    calls = gate.requests
+    second = [r for _, r in refine_queries(refiner, queries, gate=gate)]
+    alone = refiner.refine(img, cam, prior)
+    assert gate.requests == 2 * calls > 0
+    assert all(np.array_equal(r.pose.as_array(), alone.pose.as_array()) for r in first + second)

@@ -1,8 +1,9 @@
 """The one batch runner: refine many queries in this process or on Ray, with progress and failure records.
 
 Every multi-query path (``HGSLocPlugin.refine_many``, pose files through :mod:`hgsloc_plugin.pipeline`, the
-CLI, the HLoc step) comes here. One failed query never stops the batch: it comes back as a failed
-:class:`~hgsloc_plugin.refine.RefineResult` naming its error.
+CLI, the HLoc step) comes here. In this process (and in each Ray worker) ``batch_size`` queries advance together,
+their renders sharing launches (:mod:`hgsloc_plugin.lockstep`; the same poses as one at a time). One failed query
+never stops the batch: it comes back as a failed :class:`~hgsloc_plugin.refine.RefineResult` naming its error.
 """
 
 from __future__ import annotations

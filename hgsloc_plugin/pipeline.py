@@ -74,7 +74,7 @@ def totals(entries) -> dict:
         "median_confidence": median_confidence(q),
         "median_sigma_t": median_accepted(q, "sigma_t"), "median_sigma_r_deg": median_accepted(q, "sigma_r_deg"),
         "renders": sum(v.get("renders", 0) for v in q),
-        "searched": sum(1 for v in q if v.get("route") == "search"),
+        "searched": sum(1 for v in q if v.get("route") in ("search", "wide search")),
         "seconds": round(sum(v.get("seconds", 0.0) for v in q), 3),
     }
 

@@ -293,7 +293,7 @@ def test_no_wide_search_when_both_routes_end_in_one_minimum():
     """A 15 cm / 3 deg prior on the sparse room (the digest's room query 3): the gradient route and the usual
     search are both refused in one minimum (their poses within ``same_minimum_pixels``), so the wide search does
     not run; run anyway (``same_minimum_pixels=0``) it is refused too and returns the same pose, at about 1.5 times
-    the renders."""
+    the renders. With the query's own small trust region there is nothing wider to search: no wide search."""
     scene = make_room_scene(density=0.35)
     cam = hp.Camera(160, 120, 140.0, 140.0, 80.0, 60.0)
     rng = np.random.default_rng(7)
@@ -306,3 +306,7 @@ def test_no_wide_search_when_both_routes_end_in_one_minimum():
     assert run.route == "wide search" and not run.accepted
     assert np.array_equal(skip.pose.as_array(), run.pose.as_array())
     assert skip.renders < 0.8 * run.renders
+    # a query's own trust region, no larger than the wide search's would be, leaves it no room: not run either
+    tight = hp.HGSLocPlugin(scene, hp.RefineConfig(same_minimum_pixels=0.0)).refine(img, cam, priors[3], max_shift=0.05,
+                                                                                   max_rotation_deg=1.0)
+    assert tight.route == "search" and not tight.accepted and tight.max_shift == 0.05

@@ -276,7 +276,7 @@ def test_cli_refine_and_render_stdout_carry_only_their_lines(tiny_case, tmp_path
         # a refined pose carries its uncertainty (strict JSON: null when not refined)
         assert (q["sigma_t"] is not None and q["sigma_t"] > 0) == q["accepted"], q
         assert q["route"] in ("gradient", "search") and (q["gradient_rejected"] is None) == (q["route"] == "gradient")
-    searched = sum(q["route"] == "search" for q in rep["queries"].values())
+    searched = sum(q["route"] in ("search", "wide search") for q in rep["queries"].values())
     assert rep["totals"]["searched"] == searched and f"{searched} searched" in out[0]
     assert rep["totals"]["accepted"] >= 1  # the tiny case's priors (a few pixels off) are refined
     assert rep["totals"]["median_sigma_t"] > 0 and "median sigma" in out[0]

@@ -47,7 +47,8 @@ class RefineConfig:
         search: run the lattice search; False with ``polish``: gradient only.
         wide_step_pixels: image motion (pixels at the final scoring size) of the wide search's lattice levels,
             run only when the search's pose is refused (priors 30-100 px of image motion off), with the automatic
-            trust region ``trust_steps`` times the first of them; needs the polish; (): off.
+            trust region ``trust_steps`` times the first of them (not run when the query's own trust region is no
+            larger than the search's: nothing wider to search); needs the polish; (): off.
         wide_max_side: the wide search's scoring size (longest side, pixels): its lattice levels and the first
             stage of its polish score there, where the cost falls towards the truth from tens of pixels away.
         same_minimum_pixels: no wide search when the gradient route and the search were both refused, neither at

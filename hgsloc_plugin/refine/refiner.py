@@ -101,9 +101,13 @@ class Refiner:
                 logger.debug("query %s: gradient route and search refused in one minimum (%s); no wide search", name,
                              tried[-1][1].rejected)
                 return _result(ctx, tried, time.perf_counter() - t0)
+            wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.wide_step_pixels)
+            if wide.max_shift <= plan.max_shift and wide.max_rotation_deg <= plan.max_rotation_deg:
+                logger.debug("query %s: search rejected (%s); its trust region leaves a wide search no room", name,
+                             tried[-1][1].rejected)
+                return _result(ctx, tried, time.perf_counter() - t0)
             logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
-            ctx = dataclasses.replace(ctx, plan=make_plan(cfg, self.scene, camera, coarse_pose, prior,
-                                                          cfg.wide_step_pixels))
+            ctx = dataclasses.replace(ctx, plan=wide)
             tried.append(self._judged(ctx, wide_search_route(ctx)))
         return _result(ctx, tried, time.perf_counter() - t0)
 

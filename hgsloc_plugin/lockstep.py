@@ -45,6 +45,8 @@ class _Slot:
 
     job: Callable[..., object]
     request: tuple | None = None  # (target, method name, args, kwargs)
+    key: object = None  # what the request must share with others to go into one launch (None: alone)
+    arguments: dict | None = None  # a batchable request's arguments by name, defaults applied
     reply: tuple | None = None  # (ok, value or exception)
     finished: bool = False
     result: object = None
@@ -125,6 +127,7 @@ class Lockstep:
             if self._cancelled:
                 raise BatchCancelled("the batch was stopped")
             slot.request = (target, name, args, kwargs)
+            slot.key, slot.arguments = _batch_key(target, name, args, kwargs)
             self._cond.notify_all()
         slot.resume.wait()
         slot.resume.clear()
@@ -156,28 +159,30 @@ class Lockstep:
         groups: dict[object, list[_Slot]] = {}
         singles = []
         for s in slots:
-            key = _batch_key(*s.request)
-            if key is None:
+            if s.key is None:
                 singles.append(s)
             else:
-                groups.setdefault(key, []).append(s)
+                groups.setdefault(s.key, []).append(s)
         if singles:
             for s in singles:
                 s.reply = _invoke(*s.request)
             served = singles
         else:
             served = max(groups.values(), key=len)  # max keeps the first of equal lengths
-            self._launch(served) if len(served) > 1 else setattr(served[0], "reply", _invoke(*served[0].request))
+            if len(served) > 1:
+                self._launch(served)
+            else:
+                served[0].reply = _invoke(*served[0].request)
         self.requests += len(served)
         self.launches += len(singles) or 1
         for s in served:
-            s.request = None
+            s.request = s.key = s.arguments = None
             s.resume.set()
 
     def _launch(self, group: list[_Slot]) -> None:
         """One launch for the calls of ``group`` (same renderer, method, camera and settings)."""
         target, name, _, _ = group[0].request
-        calls = [_BATCHED[name].bind(None, *s.request[2], **s.request[3]).arguments for s in group]
+        calls = [s.arguments for s in group]
         stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
         slot_of = {id(q): k for k, q in enumerate(stats)}
         poses = [p for c in calls for p in c["poses"]]
@@ -209,20 +214,21 @@ class Lockstep:
         return stacked
 
 
-def _batch_key(target, name: str, args: tuple, kwargs: dict):
-    """What calls must share to go into one launch, or None when this one goes alone."""
+def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, dict | None]:
+    """(what the call must share with others to go into one launch, its arguments by name with defaults
+    applied), or (None, None) when it goes alone; worked out once, when the call is made."""
     if name not in _BATCHED or not isinstance(target, Renderer):
-        return None
+        return None, None
     try:
-        a = _BATCHED[name].bind(None, *args, **kwargs)
+        bound = _BATCHED[name].bind(None, *args, **kwargs)
     except TypeError:
-        return None
-    a.apply_defaults()
-    a = a.arguments
+        return None, None
+    bound.apply_defaults()
+    a = bound.arguments
     if a["query_index"] is not None or a["qstats"].shape[0] != 1:
-        return None
+        return None, None
     return (id(target), name, a["camera"], tuple(float(v) for v in np.ravel(a["background"])),
-            float(a["mask_alpha"]), bool(a.get("luminance", False)))
+            float(a["mask_alpha"]), bool(a.get("luminance", False))), a
 
 
 def _invoke(target, name: str, args: tuple, kwargs: dict) -> tuple:

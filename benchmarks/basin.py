@@ -142,9 +142,7 @@ def agreement(name: str, n: int, rows: list[str] | None) -> list[str]:
                 if len(routes) < 3:
                     continue
                 (pg, why_g, plan), (ps_, why_s, _) = routes[0], routes[1]
-                f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
-                shift, deg = pg.errors_to(ps_)
-                px = shift / plan.depth * f + np.radians(deg) * f
+                px = plan.pixels_apart(pg, ps_)
                 t, a = r.pose.errors_to(g)
                 line = (f"| {name} | {row} | {k} | {why_g} | {why_s} | {px:.2f} | "
                         f"{'accepted' if r.accepted else routes[2][1]} | {t * s:.2f} / {a:.2f} | {r.renders} |")

@@ -58,6 +58,13 @@ class Plan:
             return False
         return rotation_angle_deg(self.coarse_pose.R, pose.R) <= self.max_rotation_deg
 
+    def pixels_apart(self, a: Pose, b: Pose) -> float:
+        """Image motion between two poses at the final size (pixels): camera-centre distance at the plan's depth
+        plus the rotation between them, both times the mean focal length."""
+        f = 0.5 * (self.cam_final.fx + self.cam_final.fy)
+        shift, deg = a.errors_to(b)
+        return shift / self.depth * f + math.radians(deg) * f
+
     def travel(self, pose: Pose) -> float:
         """The larger of ``pose``'s centre shift / max_shift and rotation / max_rotation_deg from the prior."""
         return max(float(np.linalg.norm(self.coarse_pose.centre() - pose.centre())) / self.max_shift,

@@ -152,10 +152,7 @@ def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: fl
         return False
     if any(v.rejected in (None, TRUST_REGION_EDGE) for _, v in tried):
         return False
-    cam = plan.cam_final
-    f = 0.5 * (cam.fx + cam.fy)
-    shift, deg = tried[0][0].pose.errors_to(tried[1][0].pose)
-    return shift / plan.depth * f + math.radians(deg) * f <= pixels
+    return plan.pixels_apart(tried[0][0].pose, tried[1][0].pose) <= pixels
 
 
 def _query_prior(prior: QueryPrior | None, settings: dict) -> QueryPrior:

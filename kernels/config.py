@@ -14,6 +14,9 @@ class RasterConfig:
         grad_tile_size: tile edge of the lists the pose-derivative pass walks (``pose_grad.blend_grad``: one task
             per pixel walks its tile's whole depth-ordered list until the pixel is opaque): smaller tiles give
             shorter lists for the same images and derivatives. The renders keep ``tile_size``.
+        grad_masks: with ``grad_tile_size`` <= 8, each list entry of the derivative pass carries a mask of the
+            tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``), so a pixel skips the others on one
+            bit test; the same numbers, less time (``benchmarks/derivative_pass.md``).
         eps2d: dilation added to the 2D covariance diagonal.
         alpha_max: cap on per-Gaussian alpha (gsplat 0.999, Inria 0.99).
         alpha_min: Gaussians with alpha below this are skipped (1/255).
@@ -30,6 +33,7 @@ class RasterConfig:
 
     tile_size: int = 16
     grad_tile_size: int = 8
+    grad_masks: bool = True
     eps2d: float = 0.3
     alpha_max: float = 0.999
     alpha_min: float = 1.0 / 255.0

@@ -421,3 +421,65 @@ def test_derivative_pass_tiling_changes_no_number(name):
         np.testing.assert_array_equal(a, b)
     tiles = [r._workspace(cam, 3, grad=True).tiles for r in (got, ref)]
     assert tiles[0][0] > tiles[1][0]  # the lists really were binned differently
+
+
+def _masks_and_reference(r, cam, T):
+    """(masks [M] of the derivative pass's lists at ``T``, the exact contributing pixels [M] as the same 64-bit
+    layout, from the records in float64: sigma >= 0 and min(alpha_max, opacity exp(-sigma)) >= alpha_min)."""
+    from hgsloc_plugin.kernels.layout import Rec
+
+    r.render_derivatives(cam, [T])  # geometry at the derivative pass's tiling, then the masks
+    ws = r._workspace(cam, 1, grad=True)
+    starts = ws.tile_start.to_numpy()[0]
+    m = int(starts[-1])
+    lists, masks = r.pool.lists.isect.to_numpy()[:m], r.pool.pixel_masks().to_numpy()[:m]
+    rec = r.pool.records.packed.to_numpy()[0].astype(np.float64)
+    tile, (tx, ty), cfg = ws.tile, ws.tiles, r.config
+    exact = np.zeros(m, np.uint64)
+    for t in range(tx * ty):
+        x0, y0 = (t % tx) * tile, (t // tx) * tile
+        for dy in range(tile):
+            for dx in range(tile):
+                px, py = x0 + dx, y0 + dy
+                if px >= cam.width or py >= cam.height:
+                    continue
+                g = rec[lists[starts[t]:starts[t + 1]]]
+                ex, ey = g[:, Rec.X] - (px + 0.5), g[:, Rec.Y] - (py + 0.5)
+                sigma = 0.5 * (g[:, Rec.CA] * ex * ex + g[:, Rec.CC] * ey * ey) + g[:, Rec.CB] * ex * ey
+                alpha = np.minimum(cfg.alpha_max, g[:, Rec.OPACITY] * np.exp(-sigma))
+                hit = (sigma >= 0) & (alpha >= cfg.alpha_min)
+                exact[starts[t]:starts[t + 1]] |= hit.astype(np.uint64) << np.uint64(dy * tile + dx)
+    return masks, exact
+
+
+def _bits(a: np.ndarray) -> int:
+    return int(np.unpackbits(a.view(np.uint8)).sum())
+
+
+@pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
+def test_pixel_masks_hold_every_pixel_a_gaussian_reaches(name):
+    """Each entry's pixel mask (kernels.pose_grad.pixel_masks) holds every pixel of its tile where the Gaussian's
+    alpha reaches alpha_min (float64 reference from the records) and little more: the derivative blend skips
+    the others on one bit test, so a missing pixel would change its numbers and a full mask would save nothing."""
+    scene, cam, T = cost_case(name)
+    masks, exact = _masks_and_reference(get_renderer(scene), cam, T)
+    assert len(masks) > 1000
+    assert not np.any(exact & ~masks), "a mask misses a pixel its Gaussian reaches"
+    got, need = _bits(masks), _bits(exact)
+    assert need <= got <= 1.5 * need + len(masks), (got, need, len(masks))
+    assert got < 0.5 * 64 * len(masks)  # most entries reach few of their tile's pixels
+
+
+@pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
+def test_pixel_masks_change_no_number(name):
+    """The derivative pass with pixel masks (RasterConfig.grad_masks) gives the images, derivatives, costs,
+    gradients and JtJ of the pass without them, bit for bit."""
+    scene, cam, T = cost_case(name)
+    img = degrade(hp.render(scene, cam, moved(T, 2, 0.01)), np.random.default_rng(1))
+    poses = [T, moved(T, 0, 0.004), moved(T, 4, -0.003)]
+    got, ref = (get_renderer(scene, hp.RasterConfig(grad_masks=m)) for m in (True, False))
+    q = got.upload_window_query(img)
+    for a, b in zip(got.render_derivatives(cam, poses), ref.render_derivatives(cam, poses)):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(got.pose_gradient(cam, poses, q), ref.pose_gradient(cam, poses, q)):
+        np.testing.assert_array_equal(a, b)

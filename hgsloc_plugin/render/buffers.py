@@ -207,7 +207,8 @@ class DerivativeWorkspace:
 class TileLists:
     """The tile lists of the last launch: isect [capacity] (resident Gaussian index per entry). For the parallel
     sort, its keys (int64) and ids (int32) and their radix-sort twins; ``isect`` is then whichever ids buffer
-    the sort ended in."""
+    the sort ended in. ``masks`` [capacity] (uint64): the derivative pass's pixel masks, allocated on first use
+    (``Pool.pixel_masks``)."""
 
     isect: ti.Ndarray
     capacity: int
@@ -215,6 +216,7 @@ class TileLists:
     ids: ti.Ndarray | None = None
     keys_tmp: ti.Ndarray | None = None
     ids_tmp: ti.Ndarray | None = None
+    masks: ti.Ndarray | None = None
 
 
 @dataclass
@@ -296,6 +298,12 @@ class Pool:
             else:
                 self.lists = TileLists(nd(ti.i32, (cap,)), cap)
         return self.lists
+
+    def pixel_masks(self) -> ti.Ndarray:
+        """One uint64 per entry of the current tile lists (``kernels.pose_grad.pixel_masks``)."""
+        if self.lists.masks is None:
+            self.lists.masks = ti.ndarray(ti.u64, (self.lists.capacity,))
+        return self.lists.masks
 
     def radix_scratch(self) -> SortScratch:
         if self.sort_scratch is None:

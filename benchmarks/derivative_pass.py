@@ -5,10 +5,10 @@ Usage: python benchmarks/derivative_pass.py [--cases snow_sharp snow lego room r
 
 Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set)
 and per scoring size the default refinement uses: one plain render of one pose (ms), one derivative pass
-(``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the pixel masks (``RasterConfig.grad_masks``,
-the default) and without them (the reference), each the median of ``--repeats`` calls made in turn on poses
-about one pixel around the true one; the pass in render-times (over the plain render at the same size) and the
-speed-up; and whether both passes give the same numbers bit for bit.
+(``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the pixel masks (``RasterConfig.grad_masks``
+"on", the CPU's default) and without them ("off", the reference), each the median of ``--repeats`` calls made in
+turn on poses about one pixel around the true one; the pass in render-times (over the plain render at the same
+size) and the speed-up; and whether both passes give the same numbers bit for bit.
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ HEADER = ("| case | Gaussians rendered | size | render (ms) | pass, masks (ms) |
 def renderer_for(scene, bg, masks: bool, plan_args):
     """The renderer a refinement of ``plan_args``' query uses (the working set covering its prior on large maps),
     with or without the pixel masks; and the plan."""
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=hp.RasterConfig(grad_masks=masks))
+    raster = hp.RasterConfig(grad_masks="on" if masks else "off")
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     plan = make_plan(refiner.config, scene, *plan_args, hp.QueryPrior())
     r = refiner._working_set(plan)
     return (r.covering([plan.coarse_pose]) if hasattr(r, "covering") else r), plan

@@ -14,9 +14,10 @@ class RasterConfig:
         grad_tile_size: tile edge of the lists the pose-derivative pass walks (``pose_grad.blend_grad``: one task
             per pixel walks its tile's whole depth-ordered list until the pixel is opaque): smaller tiles give
             shorter lists for the same images and derivatives. The renders keep ``tile_size``.
-        grad_masks: with ``grad_tile_size`` <= 8, each list entry of the derivative pass carries a mask of the
-            tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``), so a pixel skips the others on one
-            bit test; the same numbers, less time (``benchmarks/derivative_pass.md``).
+        grad_masks: "on": each list entry of the derivative pass carries a mask of the tile's pixels its Gaussian
+            can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so a pixel skips the others on one
+            bit test: the same numbers, less time on the CPU (``benchmarks/derivative_pass.md``); "off"; "auto"
+            (on for the CPU when the tiles allow; off on CUDA, where it is not measured yet).
         eps2d: dilation added to the 2D covariance diagonal.
         alpha_max: cap on per-Gaussian alpha (gsplat 0.999, Inria 0.99).
         alpha_min: Gaussians with alpha below this are skipped (1/255).
@@ -33,7 +34,7 @@ class RasterConfig:
 
     tile_size: int = 16
     grad_tile_size: int = 8
-    grad_masks: bool = True
+    grad_masks: str = "auto"
     eps2d: float = 0.3
     alpha_max: float = 0.999
     alpha_min: float = 1.0 / 255.0
@@ -50,6 +51,10 @@ class RasterConfig:
             raise ValueError(f"radius_mode must be 'gsplat' or 'inria', got {self.radius_mode!r}")
         if self.blend not in ("auto", "pixel", "splat"):
             raise ValueError(f"blend must be 'auto', 'pixel' or 'splat', got {self.blend!r}")
+        if self.grad_masks not in ("auto", "on", "off"):
+            raise ValueError(f"grad_masks must be 'auto', 'on' or 'off', got {self.grad_masks!r}")
+        if self.grad_masks == "on" and self.grad_tile_size > 8:
+            raise ValueError(f"grad_masks='on' needs grad_tile_size <= 8 (64 pixels), got {self.grad_tile_size}")
         if self.sort not in ("auto", "serial", "parallel"):
             raise ValueError(f"sort must be 'auto', 'serial' or 'parallel', got {self.sort!r}")
         if not (0 < self.alpha_max <= 1):

@@ -48,10 +48,12 @@ SIGMA_MARGIN = 1e-3  # blend_grad's own margin on sigma <= LIM before the exact 
 PIXEL_MARGIN = 0.1  # pixels added on each side of an ellipse row's span (f32 rounding of the bounds)
 
 
-def uses_masks(config: RasterConfig) -> bool:
-    """Whether the derivative pass runs ``pixel_masks``: ``config.grad_masks`` and tiles small enough for one bit
-    per pixel."""
-    return config.grad_masks and config.grad_tile_size ** 2 <= MASK_BITS
+def uses_masks(config: RasterConfig, arch: str) -> bool:
+    """Whether the derivative pass runs ``pixel_masks`` on backend ``arch`` (``RasterConfig.grad_masks``; "auto":
+    on the CPU, when the tiles are small enough for one bit per pixel)."""
+    if config.grad_masks == "auto":
+        return arch != "cuda" and config.grad_tile_size ** 2 <= MASK_BITS
+    return config.grad_masks == "on"
 
 
 @functools.cache
@@ -127,7 +129,7 @@ def projection_grad_kernel(config: RasterConfig):
 
 @functools.cache
 def pixel_masks_kernel(config: RasterConfig):
-    """Compiled ``pixel_masks`` (one task per pose and tile; needs :func:`uses_masks`).
+    """Compiled ``pixel_masks`` (one task per pose and tile; ``config.grad_tile_size`` <= 8).
 
     Kernel arguments:
         packed [B, N, Rec.SIZE], tile_start [B, T + 1], isect [M], isect_base [B]: the projection's records and
@@ -191,12 +193,11 @@ def pixel_masks_kernel(config: RasterConfig):
 
 
 @functools.cache
-def blend_grad_kernel(config: RasterConfig):
+def blend_grad_kernel(config: RasterConfig, masked: bool):
     """Compiled ``blend_grad`` (one task per pixel): colour [B, H, W, 3], alpha [B, H, W] and the colour's
     derivatives drgb [B, H, W, 3 * 6] (channel-major). Its tile lists are binned at ``config.grad_tile_size``;
-    with :func:`uses_masks`, ``masks`` [>= M] u64 are ``pixel_masks``'s (else any u64 array, unread)."""
+    ``masked``: ``masks`` [>= M] u64 are ``pixel_masks``'s, else any u64 array (unread)."""
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.grad_tile_size
-    masked = uses_masks(config)
 
     @ti.kernel
     def blend_grad(

@@ -462,7 +462,7 @@ def test_pixel_masks_hold_every_pixel_a_gaussian_reaches(name):
     alpha reaches alpha_min (float64 reference from the records) and little more: the derivative blend skips
     the others on one bit test, so a missing pixel would change its numbers and a full mask would save nothing."""
     scene, cam, T = cost_case(name)
-    masks, exact = _masks_and_reference(get_renderer(scene), cam, T)
+    masks, exact = _masks_and_reference(get_renderer(scene, hp.RasterConfig(grad_masks="on")), cam, T)
     assert len(masks) > 1000
     assert not np.any(exact & ~masks), "a mask misses a pixel its Gaussian reaches"
     got, need = _bits(masks), _bits(exact)
@@ -477,9 +477,24 @@ def test_pixel_masks_change_no_number(name):
     scene, cam, T = cost_case(name)
     img = degrade(hp.render(scene, cam, moved(T, 2, 0.01)), np.random.default_rng(1))
     poses = [T, moved(T, 0, 0.004), moved(T, 4, -0.003)]
-    got, ref = (get_renderer(scene, hp.RasterConfig(grad_masks=m)) for m in (True, False))
+    got, ref = (get_renderer(scene, hp.RasterConfig(grad_masks=m)) for m in ("on", "off"))
     q = got.upload_window_query(img)
     for a, b in zip(got.render_derivatives(cam, poses), ref.render_derivatives(cam, poses)):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(got.pose_gradient(cam, poses, q), ref.pose_gradient(cam, poses, q)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_grad_masks_setting():
+    """RasterConfig.grad_masks: "auto" uses the masks on the CPU only and where the tiles fit 64 bits; a bad value
+    or "on" with tiles too large is refused."""
+    from hgsloc_plugin.kernels.pose_grad import uses_masks
+
+    assert uses_masks(hp.RasterConfig(), "cpu") and not uses_masks(hp.RasterConfig(), "cuda")
+    assert not uses_masks(hp.RasterConfig(grad_tile_size=16), "cpu")
+    assert uses_masks(hp.RasterConfig(grad_masks="on"), "cuda")
+    assert not uses_masks(hp.RasterConfig(grad_masks="off"), "cpu")
+    with pytest.raises(ValueError, match="grad_masks"):
+        hp.RasterConfig(grad_masks="yes")
+    with pytest.raises(ValueError, match="grad_tile_size <= 8"):
+        hp.RasterConfig(grad_masks="on", grad_tile_size=16)

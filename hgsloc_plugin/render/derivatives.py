@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..backend import current_arch
 from ..camera import Camera
 from ..costs import cost_from_window
 from ..kernels import window, window_grad
@@ -45,11 +46,12 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     tx, ty = ws.tiles
     lists = r.pool.lists
     masks = r.pool.pixel_masks()
-    if uses_masks(r.config):
+    masked = uses_masks(r.config, current_arch())
+    if masked:
         pixel_masks_kernel(r.config)(rec.packed, ws.tile_start, lists.isect, ws.isect_base, tx, ty, n, camera.width,
                                      camera.height, masks)
-    blend_grad_kernel(r.config)(rec.packed, drec.dpacked, ws.tile_start, lists.isect, ws.isect_base, masks,
-                                ws.background, tx, n, g.rgb, g.alpha, g.drgb)
+    blend_grad_kernel(r.config, masked)(rec.packed, drec.dpacked, ws.tile_start, lists.isect, ws.isect_base, masks,
+                                        ws.background, tx, n, g.rgb, g.alpha, g.drgb)
     return g
 
 

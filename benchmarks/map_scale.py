@@ -127,7 +127,7 @@ def stages(k: int) -> str:
     g, rec = r.gaussians, r.pool.records
 
     def project():
-        r._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.campos, ws.intrin, cam.width,
+        r._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, cam.width,
                    cam.height, ws.tile, 1, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
 
     def ms(fn) -> float:

@@ -61,8 +61,8 @@ def projection_grad_kernel(config: RasterConfig):
     """Compiled ``projection_grad``.
 
     Kernel arguments:
-        means [N, 3], cov3d [N, 6], viewmats [B, 3, 4], intrin [4] (fx, fy, cx, cy), width, height, num_poses,
-        ntiles [B, N] (from the projection: 0 = culled, skipped);
+        means [N, 3], cov3d [N, 6], viewmats [B, 4, 4] (``projection.view_rt``), intrin [4] (fx, fy, cx, cy),
+        width, height, num_poses, ntiles [B, N] (from the projection: 0 = culled, skipped);
         output: dpacked [B, N, NDER].
     """
     eps2d = config.eps2d

@@ -27,7 +27,8 @@ def jacobian_clamps(fx, fy, cx, cy, wf, hf):
 
 @ti.func
 def view_rt(viewmats: ti.template(), b):
-    """Rotation [3, 3] and translation [3] of pose ``b`` from viewmats [B, 3, 4]."""
+    """Rotation [3, 3] and translation [3] of pose ``b`` from viewmats [B, 4, 4] (rows 0-2: world-to-camera
+    [R | t]; row 3: the camera centre, then 0)."""
     R = ti.Matrix([[viewmats[b, r, c] for c in ti.static(range(3))] for r in ti.static(range(3))])
     t = ti.Vector([viewmats[b, 0, 3], viewmats[b, 1, 3], viewmats[b, 2, 3]])
     return R, t
@@ -62,10 +63,10 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
-        scale), viewmats [B, 3, 4] (world-to-camera), campos [B, 3] (camera centres), intrin [4] (fx, fy, cx,
-        cy), width, height, tile (tile edge in pixels: the renders' or the derivative pass's), num_poses, extent
-        [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f for this camera: the bound of an early,
-        conservative frustum test before the covariance);
+        scale), viewmats [B, 4, 4] (rows 0-2: world-to-camera [R | t]; row 3: the camera centre, then 0: one
+        upload per call), intrin [4] (fx, fy, cx, cy), width, height, tile (tile edge in pixels: the renders' or
+        the derivative pass's), num_poses, extent [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f
+        for this camera: the bound of an early, conservative frustum test before the covariance);
         outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
         ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
         (fields named in ``layout.Rec``).
@@ -85,7 +86,6 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         sh: ti.types.ndarray(dtype=ti.f32, ndim=3),
         smax: ti.types.ndarray(dtype=ti.f32, ndim=1),
         viewmats: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        campos: ti.types.ndarray(dtype=ti.f32, ndim=2),
         intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
         width: ti.i32,
         height: ti.i32,
@@ -167,7 +167,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
                 if nt <= 0:
                     continue
                 depth[b, i] = z
-                d = p_w - ti.Vector([campos[b, 0], campos[b, 1], campos[b, 2]])
+                d = p_w - ti.Vector([viewmats[b, 3, 0], viewmats[b, 3, 1], viewmats[b, 3, 2]])
                 d = d / ti.max(d.norm(), 1e-12)
                 rgb = eval_sh(sh, i, d)
                 # one record per Gaussian, read by both blend kernels

@@ -32,6 +32,7 @@ _W = window_weights()
 
 NH = NXI * (NXI + 1) // 2  # upper triangle of JtJ, row-major
 NSYS = NH + NXI  # per-row record: JtJ triangle, then the gradient
+ROW_SYS = 2  # in the per-row sums [B, H, 1, ROW_SYS + NSYS]: cs_terms' two, then the system's (one reduction)
 _CUM = [sum(_W[:m + 1]) for m in range(2 * RADIUS + 1)]  # sum_{j <= m} w_j
 _TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
 
@@ -40,8 +41,8 @@ _TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
 def cs_terms_kernel():
     """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal_kernel``):
     weights [B, H, W, 6] (A = 1/D, B = N/D^2 per channel, 0 on invalid pixels), means [B, H, W, 6]
-    (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, 2] = (sum of the channel-mean cs, valid pixels):
-    the same numbers as ``window.vertical_cost_kernel(False)``."""
+    (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, >= 2]: fields 0, 1 = (sum of the channel-mean cs,
+    valid pixels), the same numbers as ``window.vertical_cost_kernel(False)``."""
 
     @ti.kernel
     def cs_terms(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
@@ -137,7 +138,7 @@ def filter_kernel(axis: int, transpose: bool, channels: int):
 @functools.cache
 def system_kernel():
     """Per-row sums of the JtJ triangle and the gradient, unscaled (``2 / (3 n)`` is applied by the caller):
-    rows [B, H, 1, NSYS].
+    rows [B, H, 1, ROW_SYS + NSYS], fields from ``ROW_SYS`` on (the first are ``cs_terms``').
 
     Inputs: rgb [B, H, W, 3], qstats [Q, H, W, 3, NQ] (the query pixel is field 2) read at slot
     query_index [B], drgb and its windowed mean
@@ -176,6 +177,6 @@ def system_kernel():
                                 acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
                             acc[NH + i] += gk[i]
                 for s in ti.static(range(NSYS)):
-                    rows[b, y, 0, s] = acc[s]
+                    rows[b, y, 0, ROW_SYS + s] = acc[s]
 
     return system

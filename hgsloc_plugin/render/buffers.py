@@ -132,8 +132,7 @@ class Workspace:
     batch: int
     tile: int
     tiles: tuple[int, int]
-    viewmats: ti.Ndarray  # [B, 3, 4]
-    campos: ti.Ndarray  # [B, 3]
+    viewmats: ti.Ndarray  # [B, 4, 4]: rows 0-2 world-to-camera [R | t], row 3 the camera centre (then 0)
     intrin: ti.Ndarray  # [4]: fx, fy, cx, cy
     extent: ti.Ndarray  # [2]: the projection's extent coefficients
     isect_base: ti.Ndarray  # [B]
@@ -146,6 +145,15 @@ class Workspace:
     images: ImageBuffers | None = None
     window: WindowBuffers | None = None
     stats: StatBuffers | None = None
+    sent: dict[str, bytes] = field(default_factory=dict)
+
+    def upload(self, name: str, values: np.ndarray) -> None:
+        """Copy ``values`` into the buffer ``name`` unless it already holds them: each upload is a kernel launch,
+        and a query's calls repeat the same intrinsics, extent, background and list offsets."""
+        data = values.tobytes()
+        if self.sent.get(name) != data:
+            getattr(self, name).from_numpy(values)
+            self.sent[name] = data
 
     @classmethod
     def allocate(cls, B: int, width: int, height: int, tile: int, parallel: bool) -> Workspace:
@@ -153,7 +161,7 @@ class Workspace:
         if max(tx, ty) >= 1 << 15:  # the sort packs tile ranges in 16 bits
             raise ValueError(f"image {width}x{height} has too many tiles per axis")
         nd = ti.ndarray
-        common = dict(batch=B, tile=tile, tiles=(tx, ty), viewmats=nd(ti.f32, (B, 3, 4)), campos=nd(ti.f32, (B, 3)),
+        common = dict(batch=B, tile=tile, tiles=(tx, ty), viewmats=nd(ti.f32, (B, 4, 4)),
                       intrin=nd(ti.f32, (4,)), extent=nd(ti.f32, (2,)), isect_base=nd(ti.i64, (B,)),
                       background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:
@@ -168,22 +176,20 @@ class WindowGradBuffers:
     h: ti.Ndarray  # [B, H, W, 3, 3]
     wts: ti.Ndarray  # [B, H, W, 6]
     means: ti.Ndarray  # [B, H, W, 6]
-    rows: ti.Ndarray  # [B, H, 1, 2]
+    rows: ti.Ndarray  # [B, H, 1, ROW_SYS + NSYS]: per row, cs_terms' sums then the system's
     tmp6: ti.Ndarray  # [B, H, W, 6]
     hat: ti.Ndarray  # [B, H, W, 6]
     tmpj: ti.Ndarray  # [B, H, W, 3 * NXI]
     jbar: ti.Ndarray  # [B, H, W, 3 * NXI]
-    sys: ti.Ndarray  # [B, H, 1, NSYS]
-    out2: ti.Ndarray  # [B, 2]
-    outs: ti.Ndarray  # [B, NSYS]
+    out: ti.Ndarray  # [B, ROW_SYS + NSYS]: the rows summed per pose (float64)
 
     @classmethod
     def allocate(cls, B: int, H: int, W: int) -> WindowGradBuffers:
         nd = ti.ndarray
+        k = window_grad.ROW_SYS + window_grad.NSYS
         return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
-                   nd(ti.f32, (B, H, 1, 2)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
-                   nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f32, (B, H, W, 3 * NXI)),
-                   nd(ti.f32, (B, H, 1, window_grad.NSYS)), nd(ti.f64, (B, 2)), nd(ti.f64, (B, window_grad.NSYS)))
+                   nd(ti.f32, (B, H, 1, k)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
+                   nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f64, (B, k)))
 
 
 @dataclass

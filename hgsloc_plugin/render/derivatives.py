@@ -86,11 +86,10 @@ def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0,
         filt(0, False, 3 * NXI)(w.tmpj, n, w.jbar)
         filt(0, True, 6)(w.wts, n, w.tmp6)
         filt(1, True, 6)(w.tmp6, n, w.hat)
-        window_grad.system_kernel()(g.rgb, qstats, qi, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.sys)
-        r._reduce(w.rows, n, w.out2)
-        r._reduce(w.sys, n, w.outs)
-        sums = read_rows(w.out2, n)
-        sys = read_rows(w.outs, n)
+        window_grad.system_kernel()(g.rgb, qstats, qi, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.rows)
+        r._reduce(w.rows, n, w.out)
+        out = read_rows(w.out, n)
+        sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
         scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
         hess = np.zeros((n, NXI, NXI))
         hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]

@@ -176,19 +176,17 @@ class Renderer:
         B = len(poses)
         rec = self.pool.records
         g = self.gaussians
-        vm = np.zeros((ws.batch, 3, 4), np.float32)
-        cp = np.zeros((ws.batch, 3), np.float32)
+        vm = np.zeros((ws.batch, 4, 4), np.float32)
         for k, T in enumerate(poses):
-            vm[k] = T.matrix34()
-            cp[k] = T.centre()
-        ws.viewmats.from_numpy(vm)
-        ws.campos.from_numpy(cp)
-        ws.intrin.from_numpy(np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
-        ws.extent.from_numpy(np.array([cull.extent_coefficient(*cull.jacobian_limits(camera)),
-                                       cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
-        ws.background.from_numpy(np.asarray(background, np.float32).reshape(3))
+            vm[k, :3] = T.matrix34()
+            vm[k, 3, :3] = T.centre()
+        ws.upload("viewmats", vm)
+        ws.upload("intrin", np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
+        ws.upload("extent", np.array([cull.extent_coefficient(*cull.jacobian_limits(camera)),
+                                      cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
+        ws.upload("background", np.asarray(background, np.float32).reshape(3))
         tx, ty = ws.tiles
-        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.campos, ws.intrin, camera.width,
+        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
                       camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
         parallel = self.sort_mode == "parallel"
         if parallel:
@@ -200,7 +198,7 @@ class Renderer:
             totals = read_rows(ws.totals, B)
         base = np.zeros(ws.batch, np.int64)
         base[1:B] = np.cumsum(totals)[:-1]
-        ws.isect_base.from_numpy(base)
+        ws.upload("isect_base", base)
         if not parallel:
             isect = self.pool.tile_lists(int(totals.sum()), parallel=False).isect
             self._sort(rec.depth, rec.rect, rec.ntiles, ws.isect_base, tx, ty, B, self.n, rec.keys_a, rec.keys_b,

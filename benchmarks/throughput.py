@@ -21,10 +21,11 @@ cost in single plain renders of the same map and size), renders and derivative p
 the returned median error (% depth or cm; degrees), queries made worse: all for one query at a time
 (``refine_many(batch_size=1)``). Then the same queries in one lockstep batch (``--batch-size``, default the
 backend's: ``hgsloc_plugin/lockstep.py``): seconds per query, speed over sequential, device calls per query
-sequential -> batched (the host-device round trips: a batched launch counts once), and whether every returned
-pose equals the sequential one bit for bit. A second table splits each query's time (render-times, sequential)
-by stage: the polish per scoring size, the acceptance rule (its 12 one-pixel moves), the lattice search (usual
-and wide levels), and the rest (plan, working set, query upload).
+sequential -> batched (the host-device round trips: a batched launch counts once), Taichi kernel launches per query
+sequential -> batched (uploads and read-backs included: each costs the host tens of microseconds whatever the
+device), and whether every returned pose equals the sequential one bit for bit. A second table splits each query's
+time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its 12 one-pixel moves),
+the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
 """
 
 from __future__ import annotations
@@ -140,6 +141,26 @@ def stage_clock():
             setattr(m, n, f)
 
 
+@contextlib.contextmanager
+def kernel_launches():
+    """Taichi kernel launches while inside: a one-element list holding the count (wraps ``Kernel.__call__``; a
+    ``from_numpy`` upload and a read-back are launches too)."""
+    from taichi.lang import kernel_impl
+
+    count = [0]
+    original = kernel_impl.Kernel.__call__
+
+    def counted(self, *args, **kwargs):
+        count[0] += 1
+        return original(self, *args, **kwargs)
+
+    kernel_impl.Kernel.__call__ = counted
+    try:
+        yield count
+    finally:
+        kernel_impl.Kernel.__call__ = original
+
+
 def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int) -> tuple[list, float, Lockstep]:
     """The queries in lockstep batches: (results in input order, seconds per query, the gate with its counts)."""
     gate = Lockstep(batch_size)
@@ -164,11 +185,12 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     ms, ms_batch = render_ms(refiner, cam, priors[0])
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
-    with stage_clock() as spent:
+    with stage_clock() as spent, kernel_launches() as seq_launches:
         t0 = time.perf_counter()
         results = refiner.refine_many(items, progress=False, batch_size=1)
         sec = (time.perf_counter() - t0) / len(items)
-    together, sec_b, gate = batched(refiner, items, batch_size)
+    with kernel_launches() as batch_launches:
+        together, sec_b, gate = batched(refiner, items, batch_size)
     same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for a, b in zip(results, together))
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
@@ -183,6 +205,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
            f"{np.median(e0[:, 0]):.3f} / {np.median(e0[:, 1]):.2f} {unit} | "
            f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} | "
            f"{sec_b:.2f} | {sec / sec_b:.2f}x | {gate.requests / len(items):.0f} -> {gate.launches / len(items):.0f} | "
+           f"{seq_launches[0] / len(items):.0f} -> {batch_launches[0] / len(items):.0f} | "
            f"{'yes' if same else 'NO'} |")
     print(row, flush=True)
     unit = len(items) * ms / 1000  # seconds of one render, per query
@@ -209,8 +232,8 @@ def main() -> None:
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
-            "| batched s / query | batched speed | device calls / query | same poses |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| batched s / query | batched speed | device calls / query | kernel launches / query | same poses |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
     done = [r for r in (run(c, pct, deg, bs, a.shaped_queries) for c in a.cases) if r]
     rows = [r for r, _ in done]

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..backend import current_arch
 from ..camera import Camera
 from ..costs import cost_from_window
 from ..kernels import window, window_grad
-from ..kernels.pose_grad import NXI, blend_grad_kernel, pixel_masks_kernel, projection_grad_kernel, uses_masks
+from ..kernels.pose_grad import NXI, blend_grad_kernel, pixel_masks_kernel, projection_grad_kernel
 from ..pose import Pose
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 
@@ -46,12 +45,11 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     tx, ty = ws.tiles
     lists = r.pool.lists
     masks = r.pool.pixel_masks()
-    masked = uses_masks(r.config, current_arch())
-    if masked:
+    if r.grad_masks:
         pixel_masks_kernel(r.config)(rec.packed, ws.tile_start, lists.isect, ws.isect_base, tx, ty, n, camera.width,
                                      camera.height, masks)
-    blend_grad_kernel(r.config, masked)(rec.packed, drec.dpacked, ws.tile_start, lists.isect, ws.isect_base, masks,
-                                        ws.background, tx, n, g.rgb, g.alpha, g.drgb)
+    blend_grad_kernel(r.config, r.grad_masks)(rec.packed, drec.dpacked, ws.tile_start, lists.isect, ws.isect_base,
+                                              masks, ws.background, tx, n, g.rgb, g.alpha, g.drgb)
     return g
 
 

@@ -17,6 +17,7 @@ from ..camera import Camera
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
 from ..kernels.layout import Stat
+from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
 from ..kernels.tile_sort import bin_parallel, count_kernel, tile_sort_kernel
 from ..pose import Pose
@@ -60,6 +61,7 @@ class Renderer:
             self._blend_img, self._blend_cost = image_kernel(self.config), cost_kernel(self.config)
         self._reduce = reduce_kernel()
         self.sort_mode = sort_mode(self.config.sort, current_arch())
+        self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks
 
     # ---- the Gaussians: subsets share this renderer's kernels and pool ----
 

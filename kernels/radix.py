@@ -8,6 +8,9 @@ backend and run. Shapes: ``m`` entries; ``nb`` blocks of ``bs`` entries.
 - radix sort of non-negative int64 keys with int32 values, 8 bits a pass: per (digit, block) counts, their
   exclusive scan in digit-major order (all blocks' entries of digit 0 first, block by block), then each block
   scatters its entries in order.
+
+Each scan and each radix pass is one launch (its steps are loops of one kernel, run in turn): a launch costs the
+host tens of microseconds, and a render's sort made 28 of them.
 """
 
 import functools
@@ -24,45 +27,45 @@ def block_size(m: int, blocks: int = MAX_BLOCKS) -> int:
     return max(64, -(-m // blocks))
 
 
-@functools.cache
-def scan_kernels():
-    """(block_sums, scan_sums, block_scan) over the first ``cols`` columns of the first ``rows`` rows of a 2-D
-    int32 array, read row-major as one sequence of ``rows * cols`` values: ``out`` [>= rows * cols + 1] int64
-    receives the exclusive prefix sums and, last, the total."""
-
-    @ti.kernel
-    def block_sums(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
-                   sums: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-        n = rows * cols
-        for blk in range((n + bs - 1) // bs):
-            s = ti.i64(0)
-            for j in range(blk * bs, ti.min(n, blk * bs + bs)):
-                s += vals[j // cols, j % cols]
-            sums[blk] = s
-
-    @ti.kernel
-    def scan_sums(sums: ti.types.ndarray(dtype=ti.i64, ndim=1), nb: ti.i32):
-        ti.loop_config(serialize=True)
+@ti.func
+def _scan(vals: ti.template(), rows, cols, bs, sums: ti.template(), out: ti.template()):
+    """Exclusive scan over the first ``cols`` columns of the first ``rows`` rows of ``vals`` (2-D int32), read
+    row-major as one sequence of ``rows * cols`` values, as three loops run in turn (each a parallel loop when
+    called at a kernel's outermost scope): per-block sums (``bs`` values a block), their exclusive scan on one
+    thread, then each block's values from its offset. ``out`` [>= rows * cols + 1] int64 receives the prefix
+    sums and, last, the total; ``sums`` int64 [>= blocks + 1] is scratch."""
+    n = rows * cols
+    nb = (n + bs - 1) // bs
+    for blk in range(nb):
+        s = ti.i64(0)
+        for j in range(blk * bs, ti.min(n, blk * bs + bs)):
+            s += vals[j // cols, j % cols]
+        sums[blk] = s
+    for _ in range(1):  # one thread: the blocks' sums in order
         acc = ti.i64(0)
         for blk in range(nb + 1):
             v = sums[blk] if blk < nb else ti.i64(0)
             sums[blk] = acc
             acc += v
+    for blk in range(nb):
+        acc = sums[blk]
+        for j in range(blk * bs, ti.min(n, blk * bs + bs)):
+            out[j] = acc
+            acc += vals[j // cols, j % cols]
+        if blk == nb - 1:
+            out[n] = acc
+
+
+@functools.cache
+def scan_kernel():
+    """``_scan`` in one launch."""
 
     @ti.kernel
-    def block_scan(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
-                   sums: ti.types.ndarray(dtype=ti.i64, ndim=1), out: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-        n = rows * cols
-        nb = (n + bs - 1) // bs
-        for blk in range(nb):
-            acc = sums[blk]
-            for j in range(blk * bs, ti.min(n, blk * bs + bs)):
-                out[j] = acc
-                acc += vals[j // cols, j % cols]
-            if blk == nb - 1:
-                out[n] = acc
+    def scan(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
+             sums: ti.types.ndarray(dtype=ti.i64, ndim=1), out: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        _scan(vals, rows, cols, bs, sums, out)
 
-    return block_sums, scan_sums, block_scan
+    return scan
 
 
 def exclusive_scan(vals, rows: int, cols: int, sums, out) -> None:
@@ -71,31 +74,28 @@ def exclusive_scan(vals, rows: int, cols: int, sums, out) -> None:
     n = rows * cols
     if n == 0:
         raise ValueError("nothing to scan")
-    bs = block_size(n)
-    block_sums, scan_sums, block_scan = scan_kernels()
-    block_sums(vals, rows, cols, bs, sums)
-    scan_sums(sums, (n + bs - 1) // bs)
-    block_scan(vals, rows, cols, bs, sums, out)
+    scan_kernel()(vals, rows, cols, block_size(n), sums, out)
 
 
 @functools.cache
-def radix_kernels():
-    """(digit_counts, scatter) of one radix pass."""
+def radix_pass_kernel():
+    """One radix pass in one launch: per (digit, block) counts [DIGITS, nb] of the keys' digit at ``shift``, their
+    exclusive scan in digit-major order (all blocks' entries of digit 0 first, block by block) into ``offsets``,
+    then each block scatters its entries in order (stable)."""
 
     @ti.kernel
-    def digit_counts(keys: ti.types.ndarray(dtype=ti.i64, ndim=1), m: ti.i32, shift: ti.i32, bs: ti.i32,
-                     nb: ti.i32, counts: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+    def radix_pass(keys_in: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_in: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                   m: ti.i32, shift: ti.i32, bs: ti.i32, nb: ti.i32, scan_bs: ti.i32,
+                   counts: ti.types.ndarray(dtype=ti.i32, ndim=2), sums: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                   offsets: ti.types.ndarray(dtype=ti.i64, ndim=1), keys_out: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                   ids_out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
         for d, blk in ti.ndrange(DIGITS, nb):
             counts[d, blk] = 0
         for blk in range(nb):
             for i in range(blk * bs, ti.min(m, blk * bs + bs)):
-                d = ti.cast((keys[i] >> shift) & (DIGITS - 1), ti.i32)
+                d = ti.cast((keys_in[i] >> shift) & (DIGITS - 1), ti.i32)
                 counts[d, blk] += 1
-
-    @ti.kernel
-    def scatter(keys_in: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_in: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                m: ti.i32, shift: ti.i32, bs: ti.i32, nb: ti.i32, offsets: ti.types.ndarray(dtype=ti.i64, ndim=1),
-                keys_out: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+        _scan(counts, DIGITS, nb, scan_bs, sums, offsets)
         for blk in range(nb):
             for i in range(blk * bs, ti.min(m, blk * bs + bs)):
                 k = keys_in[i]
@@ -105,7 +105,7 @@ def radix_kernels():
                 keys_out[pos] = k
                 ids_out[pos] = ids_in[i]
 
-    return digit_counts, scatter
+    return radix_pass
 
 
 def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets, sums):
@@ -122,11 +122,9 @@ def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets,
         return keys, ids
     bs = block_size(m)
     nb = -(-m // bs)
-    digit_counts, scatter = radix_kernels()
+    radix_pass = radix_pass_kernel()
     src, dst = (keys, ids), (keys_tmp, ids_tmp)
     for shift in range(0, bits, DIGIT_BITS):
-        digit_counts(src[0], m, shift, bs, nb, counts)
-        exclusive_scan(counts, DIGITS, nb, sums, offsets)
-        scatter(src[0], src[1], m, shift, bs, nb, offsets, dst[0], dst[1])
+        radix_pass(src[0], src[1], m, shift, bs, nb, block_size(DIGITS * nb), counts, sums, offsets, dst[0], dst[1])
         src, dst = dst, src
     return src

@@ -147,24 +147,29 @@ def cost_kernel(config: RasterConfig):
     return blend_cost
 
 
+@ti.func
+def reduce_rows(run_stats: ti.template(), num_poses, out: ti.template()):
+    """Sum run statistics [B, H, TX, S] into per-pose totals ``out`` [>= num_poses, S] in float64, in a fixed order
+    (row, then run). S is read from ``out``, so the blend's ``Stat`` record and the window kernels' rows share it;
+    ``out`` may be a host (numpy) array: the totals then arrive without a read-back launch."""
+    H = run_stats.shape[1]
+    TX = run_stats.shape[2]
+    for b, s in ti.ndrange(num_poses, out.shape[1]):
+        tot = ti.f64(0.0)
+        for y in range(H):
+            for r in range(TX):
+                tot += ti.cast(run_stats[b, y, r, s], ti.f64)
+        out[b, s] = tot
+
+
 @functools.cache
 def reduce_kernel():
-    """Sum run statistics [B, H, TX, S] into per-pose totals [B, S] in float64, in a fixed order (row, then run).
-
-    S is read from the arrays, so the blend's ``Stat`` record and the window kernels' (sum, count) rows share it.
-    """
+    """:func:`reduce_rows` in a launch of its own."""
 
     @ti.kernel
     def reduce_stats(run_stats: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
                      out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
-        H = run_stats.shape[1]
-        TX = run_stats.shape[2]
-        for b, s in ti.ndrange(num_poses, out.shape[1]):
-            tot = ti.f64(0.0)
-            for y in range(H):
-                for r in range(TX):
-                    tot += ti.cast(run_stats[b, y, r, s], ti.f64)
-            out[b, s] = tot
+        reduce_rows(run_stats, num_poses, out)
 
     return reduce_stats
 

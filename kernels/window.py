@@ -14,7 +14,7 @@ separable; coordinates outside the image are clamped to the border, i.e. replica
 The pixel's value is the mean over the three channels; a pixel counts when its rendered alpha >= ``mask_alpha``.
 ``cs`` compares local structure only (invariant to a brightness offset and robust to gain), which is what
 survives between a real photograph and an imperfect map. Sums run in a fixed order (one task per row, then one
-per pose in float64 by ``blend.reduce_kernel``): deterministic.
+per pose in float64 by ``blend.reduce_rows``): deterministic.
 
 Query statistics hold Q queries ``[Q, H, W, 3, NQ]``; pose ``b`` of a launch is compared with query
 ``query_index[b]`` ([B] int32), so one launch scores the poses of many queries of one size, each pose's numbers
@@ -27,6 +27,7 @@ import math
 
 import taichi as ti
 
+from .blend import reduce_rows
 from .grain import item, spread
 
 SIGMA = 1.5
@@ -90,34 +91,27 @@ def copy_query_kernel():
     return copy_query
 
 
-@functools.cache
-def horizontal_kernel():
-    """First (horizontal) window pass over the rendering: [B, H, W, 3, 3] = filtered r, r^2, r q per channel."""
-
-    @ti.kernel
-    def horizontal(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
-                   query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), num_poses: ti.i32,
-                   out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
-        H = rgb.shape[1]
-        W = rgb.shape[2]
-        for b, y, x in ti.ndrange(num_poses, H, W):
-            qi = query_index[b]
-            for c in ti.static(range(3)):
-                s1 = 0.0
-                s2 = 0.0
-                s3 = 0.0
-                for j in ti.static(range(2 * RADIUS + 1)):
-                    xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
-                    r = rgb[b, y, xx, c]
-                    w = ti.static(_W[j])
-                    s1 += w * r
-                    s2 += w * r * r
-                    s3 += w * r * qstats[qi, y, xx, c, 2]
-                out[b, y, x, c, 0] = s1
-                out[b, y, x, c, 1] = s2
-                out[b, y, x, c, 2] = s3
-
-    return horizontal
+@ti.func
+def horizontal(rgb: ti.template(), qstats: ti.template(), query_index: ti.template(), num_poses, out: ti.template()):
+    """First (horizontal) window pass over the rendering: out [B, H, W, 3, 3] = filtered r, r^2, r q per channel."""
+    H = rgb.shape[1]
+    W = rgb.shape[2]
+    for b, y, x in ti.ndrange(num_poses, H, W):
+        qi = query_index[b]
+        for c in ti.static(range(3)):
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for j in ti.static(range(2 * RADIUS + 1)):
+                xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
+                r = rgb[b, y, xx, c]
+                w = ti.static(_W[j])
+                s1 += w * r
+                s2 += w * r * r
+                s3 += w * r * qstats[qi, y, xx, c, 2]
+            out[b, y, x, c, 0] = s1
+            out[b, y, x, c, 1] = s2
+            out[b, y, x, c, 2] = s3
 
 
 @ti.func
@@ -148,16 +142,13 @@ def contrast_structure(hbuf: ti.template(), qstats: ti.template(), qi, b, y, x, 
     return (2.0 * s_rq + C2) / den, den, m, mq
 
 
-@functools.cache
-def vertical_cost_kernel(with_luminance: bool):
+def _vertical_cost(with_luminance: bool):
     """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 1, 2] = (sum of values, pixels),
-    the run-statistics layout that ``blend.reduce_kernel`` sums per pose."""
+    the run-statistics layout that ``blend.reduce_rows`` sums per pose."""
 
-    @ti.kernel
-    def vertical(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
-                 query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-                 mask_alpha: ti.f32, num_poses: ti.i32,
-                 rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+    @ti.func
+    def vertical(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(),
+                 mask_alpha, num_poses, rows: ti.template()):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
         stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
@@ -181,3 +172,22 @@ def vertical_cost_kernel(with_luminance: bool):
                 rows[b, y, 0, 1] = cnt
 
     return vertical
+
+
+@functools.cache
+def window_cost_kernel(with_luminance: bool):
+    """The windowed similarity of B renderings in one launch: the horizontal pass into hbuf [B, H, W, 3, 3], the
+    vertical pass's per-row sums into rows [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64
+    (sum of the per-pixel values, valid pixels; a host array: no read-back launch)."""
+    vertical = _vertical_cost(with_luminance)
+
+    @ti.kernel
+    def window_cost(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
+                    query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+                    mask_alpha: ti.f32, num_poses: ti.i32, hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5),
+                    rows: ti.types.ndarray(dtype=ti.f32, ndim=4), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+        horizontal(rgb, qstats, query_index, num_poses, hbuf)
+        vertical(hbuf, qstats, query_index, alpha, mask_alpha, num_poses, rows)
+        reduce_rows(rows, num_poses, out)
+
+    return window_cost

@@ -15,8 +15,9 @@ so the cost is a weighted least-squares sum of the windowed zero-mean difference
 
 JtJ is the exact Hessian at a zero residual. The sums over k of per-pixel weights are regrouped with the
 window's transpose: ``sum_p A_p sum_k w_pk X_k = sum_k X_k (W^T A)_k``, so only scalar weight images are
-filtered (``filter_kernel(transpose=True)``) and the 6x6 products are formed once per pixel.
-Everything stays on the device; rows are summed per pose in float64 by ``blend.reduce_kernel`` (fixed order).
+filtered (``window_filter(transpose=True)``) and the 6x6 products are formed once per pixel.
+Everything stays on the device (one launch, ``cs_system_kernel``); rows are summed per pose in float64 by
+``blend.reduce_rows`` (fixed order).
 Reference twin: ``tests/test_pose_grad.py`` (central differences of the Taichi cost).
 """
 
@@ -24,9 +25,10 @@ import functools
 
 import taichi as ti
 
+from .blend import reduce_rows
 from .grain import item, spread
 from .pose_grad import NXI
-from .window import RADIUS, contrast_structure, window_weights
+from .window import RADIUS, contrast_structure, horizontal, window_weights
 
 _W = window_weights()
 
@@ -37,54 +39,46 @@ _CUM = [sum(_W[:m + 1]) for m in range(2 * RADIUS + 1)]  # sum_{j <= m} w_j
 _TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
 
 
-@functools.cache
-def cs_terms_kernel():
-    """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal_kernel``):
+@ti.func
+def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(), mask_alpha,
+             num_poses, weights: ti.template(), means: ti.template(), rows: ti.template()):
+    """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal``):
     weights [B, H, W, 6] (A = 1/D, B = N/D^2 per channel, 0 on invalid pixels), means [B, H, W, 6]
     (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, >= 2]: fields 0, 1 = (sum of the channel-mean cs,
-    valid pixels), the same numbers as ``window.vertical_cost_kernel(False)``."""
-
-    @ti.kernel
-    def cs_terms(hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
-                 query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-                 mask_alpha: ti.f32, num_poses: ti.i32,
-                 weights: ti.types.ndarray(dtype=ti.f32, ndim=4), means: ti.types.ndarray(dtype=ti.f32, ndim=4),
-                 rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
-        H = hbuf.shape[1]
-        W = hbuf.shape[2]
-        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
-        for task in range(num_poses * H * stride):
-            is_item, b, y = item(task, stride, H)
-            if is_item:
-                qi = query_index[b]
-                tot = 0.0
-                cnt = 0.0
-                for x in range(W):
-                    valid = alpha[b, y, x] >= mask_alpha
-                    v = 0.0
-                    for c in ti.static(range(3)):
-                        cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
-                        v += cs
-                        a = 0.0
-                        bw = 0.0
-                        if valid:
-                            a = 1.0 / den
-                            bw = (1.0 - cs) / den
-                        weights[b, y, x, 2 * c] = a
-                        weights[b, y, x, 2 * c + 1] = bw
-                        means[b, y, x, 2 * c] = m
-                        means[b, y, x, 2 * c + 1] = m - mq
+    valid pixels), the same numbers as ``window._vertical_cost(False)``."""
+    H = hbuf.shape[1]
+    W = hbuf.shape[2]
+    stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
+    for task in range(num_poses * H * stride):
+        is_item, b, y = item(task, stride, H)
+        if is_item:
+            qi = query_index[b]
+            tot = 0.0
+            cnt = 0.0
+            for x in range(W):
+                valid = alpha[b, y, x] >= mask_alpha
+                v = 0.0
+                for c in ti.static(range(3)):
+                    cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
+                    v += cs
+                    a = 0.0
+                    bw = 0.0
                     if valid:
-                        tot += v / 3.0
-                        cnt += 1.0
-                rows[b, y, 0, 0] = tot
-                rows[b, y, 0, 1] = cnt
-
-    return cs_terms
+                        a = 1.0 / den
+                        bw = (1.0 - cs) / den
+                    weights[b, y, x, 2 * c] = a
+                    weights[b, y, x, 2 * c + 1] = bw
+                    means[b, y, x, 2 * c] = m
+                    means[b, y, x, 2 * c + 1] = m - mq
+                if valid:
+                    tot += v / 3.0
+                    cnt += 1.0
+            rows[b, y, 0, 0] = tot
+            rows[b, y, 0, 1] = cnt
 
 
 @functools.cache
-def filter_kernel(axis: int, transpose: bool, channels: int):
+def window_filter(axis: int, transpose: bool, channels: int):
     """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: rows / y, 1: columns /
     x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each input pixel
     gives to the outputs: at the borders the clamped taps' weights add up)."""
@@ -99,9 +93,8 @@ def filter_kernel(axis: int, transpose: bool, channels: int):
                 v[c] = src[b, q, x, c]
         return v
 
-    @ti.kernel
-    def filt(src: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
-             dst: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+    @ti.func
+    def filt(src: ti.template(), num_poses, dst: ti.template()):
         H = src.shape[1]
         W = src.shape[2]
         L = W if ti.static(axis == 1) else H
@@ -135,8 +128,10 @@ def filter_kernel(axis: int, transpose: bool, channels: int):
     return filt
 
 
-@functools.cache
-def system_kernel():
+@ti.func
+def system(rgb: ti.template(), qstats: ti.template(), query_index: ti.template(), drgb: ti.template(),
+           jbar: ti.template(), weights: ti.template(), what: ti.template(), means: ti.template(), num_poses,
+           rows: ti.template()):
     """Per-row sums of the JtJ triangle and the gradient, unscaled (``2 / (3 n)`` is applied by the caller):
     rows [B, H, 1, ROW_SYS + NSYS], fields from ``ROW_SYS`` on (the first are ``cs_terms``').
 
@@ -145,38 +140,63 @@ def system_kernel():
     jbar [B, H, W, 3 * 6], weights and their transposed window what [B, H, W, 6], means [B, H, W, 6].
     """
 
-    @ti.kernel
-    def system(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
-               query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), drgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
-               jbar: ti.types.ndarray(dtype=ti.f32, ndim=4),
-               weights: ti.types.ndarray(dtype=ti.f32, ndim=4), what: ti.types.ndarray(dtype=ti.f32, ndim=4),
-               means: ti.types.ndarray(dtype=ti.f32, ndim=4), num_poses: ti.i32,
-               rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
-        H = rgb.shape[1]
-        W = rgb.shape[2]
-        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
-        for task in range(num_poses * H * stride):
-            is_item, b, y = item(task, stride, H)
-            if is_item:
-                qi = query_index[b]
-                acc = ti.Vector([0.0] * NSYS)
-                for x in range(W):
-                    for c in ti.static(range(3)):
-                        Jk = ti.Vector([drgb[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
-                        Jb = ti.Vector([jbar[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
-                        ah = what[b, y, x, 2 * c]
-                        bh = what[b, y, x, 2 * c + 1]
-                        a = weights[b, y, x, 2 * c]
-                        bw = weights[b, y, x, 2 * c + 1]
-                        r = rgb[b, y, x, c]
-                        d = r - qstats[qi, y, x, c, 2]
-                        gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
-                        for i in ti.static(range(NXI)):
-                            for j in ti.static(range(i, NXI)):
-                                idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
-                                acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
-                            acc[NH + i] += gk[i]
-                for s in ti.static(range(NSYS)):
-                    rows[b, y, 0, ROW_SYS + s] = acc[s]
+    H = rgb.shape[1]
+    W = rgb.shape[2]
+    stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
+    for task in range(num_poses * H * stride):
+        is_item, b, y = item(task, stride, H)
+        if is_item:
+            qi = query_index[b]
+            acc = ti.Vector([0.0] * NSYS)
+            for x in range(W):
+                for c in ti.static(range(3)):
+                    Jk = ti.Vector([drgb[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                    Jb = ti.Vector([jbar[b, y, x, c * NXI + j] for j in ti.static(range(NXI))])
+                    ah = what[b, y, x, 2 * c]
+                    bh = what[b, y, x, 2 * c + 1]
+                    a = weights[b, y, x, 2 * c]
+                    bw = weights[b, y, x, 2 * c + 1]
+                    r = rgb[b, y, x, c]
+                    d = r - qstats[qi, y, x, c, 2]
+                    gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
+                    for i in ti.static(range(NXI)):
+                        for j in ti.static(range(i, NXI)):
+                            idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
+                            acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
+                        acc[NH + i] += gk[i]
+            for s in ti.static(range(NSYS)):
+                rows[b, y, 0, ROW_SYS + s] = acc[s]
 
-    return system
+
+@functools.cache
+def cs_system_kernel():
+    """The cs cost's Gauss-Newton system of B poses in one launch, from their renderings rgb [B, H, W, 3], alpha
+    [B, H, W] and colour derivatives drgb [B, H, W, 3 * NXI] against the query statistics at ``query_index``:
+    the horizontal window pass (into h), the per-pixel terms (weights, means, the cs sums into rows' fields 0-1),
+    the windowed derivatives (tmpj, jbar) and the transposed window of the weights (tmp6, what), the rows of
+    the JtJ triangle and the gradient (rows' fields from ``ROW_SYS``), then every field summed per pose into
+    ``out`` [B, ROW_SYS + NSYS] float64 (a host array: no read-back launch). Scratch shapes: ``WindowGradBuffers``.
+    """
+    rows_of_drgb, cols_of_jbar = window_filter(1, False, 3 * NXI), window_filter(0, False, 3 * NXI)
+    cols_of_weights, rows_of_what = window_filter(0, True, 6), window_filter(1, True, 6)
+    f32 = ti.f32
+
+    @ti.kernel
+    def cs_system(rgb: ti.types.ndarray(dtype=f32, ndim=4), alpha: ti.types.ndarray(dtype=f32, ndim=3),
+                  drgb: ti.types.ndarray(dtype=f32, ndim=4), qstats: ti.types.ndarray(dtype=f32, ndim=5),
+                  query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), mask_alpha: f32, num_poses: ti.i32,
+                  h: ti.types.ndarray(dtype=f32, ndim=5), weights: ti.types.ndarray(dtype=f32, ndim=4),
+                  means: ti.types.ndarray(dtype=f32, ndim=4), tmpj: ti.types.ndarray(dtype=f32, ndim=4),
+                  jbar: ti.types.ndarray(dtype=f32, ndim=4), tmp6: ti.types.ndarray(dtype=f32, ndim=4),
+                  what: ti.types.ndarray(dtype=f32, ndim=4), rows: ti.types.ndarray(dtype=f32, ndim=4),
+                  out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+        horizontal(rgb, qstats, query_index, num_poses, h)
+        cs_terms(h, qstats, query_index, alpha, mask_alpha, num_poses, weights, means, rows)
+        rows_of_drgb(drgb, num_poses, tmpj)
+        cols_of_jbar(tmpj, num_poses, jbar)
+        cols_of_weights(weights, num_poses, tmp6)
+        rows_of_what(tmp6, num_poses, what)
+        system(rgb, qstats, query_index, drgb, jbar, weights, what, means, num_poses, rows)
+        reduce_rows(rows, num_poses, out)
+
+    return cs_system

@@ -102,16 +102,16 @@ class ImageBuffers:
 
 @dataclass
 class WindowBuffers:
-    """The windowed cost's scratch: horizontal pass [B, H, W, 3, 3], row sums [B, H, 1, 2], sums [B, 2]."""
+    """The windowed cost's scratch: horizontal pass [B, H, W, 3, 3], row sums [B, H, 1, 2] (the totals per pose
+    go straight to a host array)."""
 
     h: ti.Ndarray
     rows: ti.Ndarray
-    out: ti.Ndarray
 
     @classmethod
     def allocate(cls, B: int, H: int, W: int) -> WindowBuffers:
         nd = ti.ndarray
-        return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, 1, 2)), nd(ti.f64, (B, 2)))
+        return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, 1, 2)))
 
 
 @dataclass
@@ -181,7 +181,6 @@ class WindowGradBuffers:
     hat: ti.Ndarray  # [B, H, W, 6]
     tmpj: ti.Ndarray  # [B, H, W, 3 * NXI]
     jbar: ti.Ndarray  # [B, H, W, 3 * NXI]
-    out: ti.Ndarray  # [B, ROW_SYS + NSYS]: the rows summed per pose (float64)
 
     @classmethod
     def allocate(cls, B: int, H: int, W: int) -> WindowGradBuffers:
@@ -189,7 +188,7 @@ class WindowGradBuffers:
         k = window_grad.ROW_SYS + window_grad.NSYS
         return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
                    nd(ti.f32, (B, H, 1, k)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
-                   nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f64, (B, k)))
+                   nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f32, (B, H, W, 3 * NXI)))
 
 
 @dataclass

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..costs import cost_from_window
-from ..kernels import window, window_grad
+from ..kernels import window_grad
 from ..kernels.pose_grad import NXI, blend_grad_kernel, pixel_masks_kernel, projection_grad_kernel
 from ..pose import Pose
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
@@ -77,16 +77,9 @@ def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0,
         if g.window is None:
             g.window = WindowGradBuffers.allocate(*g.alpha.shape)
         w = g.window
-        window.horizontal_kernel()(g.rgb, qstats, qi, n, w.h)
-        window_grad.cs_terms_kernel()(w.h, qstats, qi, g.alpha, float(mask_alpha), n, w.wts, w.means, w.rows)
-        filt = window_grad.filter_kernel
-        filt(1, False, 3 * NXI)(g.drgb, n, w.tmpj)
-        filt(0, False, 3 * NXI)(w.tmpj, n, w.jbar)
-        filt(0, True, 6)(w.wts, n, w.tmp6)
-        filt(1, True, 6)(w.tmp6, n, w.hat)
-        window_grad.system_kernel()(g.rgb, qstats, qi, g.drgb, w.jbar, w.wts, w.hat, w.means, n, w.rows)
-        r._reduce(w.rows, n, w.out)
-        out = read_rows(w.out, n)
+        out = np.empty((n, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
+        window_grad.cs_system_kernel()(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h, w.wts,
+                                       w.means, w.tmpj, w.jbar, w.tmp6, w.hat, w.rows, out)
         sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
         scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
         hess = np.zeros((n, NXI, NXI))

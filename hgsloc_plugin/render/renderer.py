@@ -295,10 +295,10 @@ class Renderer:
                 ws.window = WindowBuffers.allocate(ws.batch, camera.height, camera.width)
             w = ws.window
             n = len(part)
-            window.horizontal_kernel()(im.rgb, qstats, qi, n, w.h)
-            window.vertical_cost_kernel(bool(luminance))(w.h, qstats, qi, im.alpha, float(mask_alpha), n, w.rows)
-            self._reduce(w.rows, n, w.out)
-            out.append(read_rows(w.out, n))
+            sums = np.empty((n, 2), np.float64)
+            window.window_cost_kernel(bool(luminance))(im.rgb, qstats, qi, im.alpha, float(mask_alpha), n, w.h,
+                                                       w.rows, sums)
+            out.append(sums)
         return np.concatenate(out)
 
     def cost_stats(self, camera: Camera, poses: list[Pose], target: ti.Ndarray, background=(0.0, 0.0, 0.0),

@@ -13,6 +13,7 @@ import taichi as ti
 from .config import RasterConfig
 from .layout import Rec
 from .sh import make_sh_func
+from .tile_sort import count_tiles
 
 
 @ti.func
@@ -58,8 +59,10 @@ def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
 
 
 @functools.cache
-def projection_kernel(config: RasterConfig, sh_degree: int):
-    """Compiled projection kernel for one config and SH degree.
+def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
+    """Compiled projection kernel for one config and SH degree; ``count``: it also sums each pose's tile
+    intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial sort; a host array: they
+    come back with the launch), else ``totals`` is not touched.
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
@@ -96,6 +99,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
         rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
         ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
         packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        totals: ti.types.ndarray(dtype=ti.i64, ndim=1),
     ):
         n = means.shape[0]
         fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
@@ -187,5 +191,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int):
                 rect[b, i, 2] = x1
                 rect[b, i, 3] = y1
                 ntiles[b, i] = nt
+        if ti.static(count):
+            count_tiles(ntiles, num_poses, n, totals)
 
     return project

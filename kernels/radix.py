@@ -28,7 +28,7 @@ def block_size(m: int, blocks: int = MAX_BLOCKS) -> int:
 
 
 @ti.func
-def _scan(vals: ti.template(), rows, cols, bs, sums: ti.template(), out: ti.template()):
+def scan_rows(vals: ti.template(), rows, cols, bs, sums: ti.template(), out: ti.template()):
     """Exclusive scan over the first ``cols`` columns of the first ``rows`` rows of ``vals`` (2-D int32), read
     row-major as one sequence of ``rows * cols`` values, as three loops run in turn (each a parallel loop when
     called at a kernel's outermost scope): per-block sums (``bs`` values a block), their exclusive scan on one
@@ -58,12 +58,12 @@ def _scan(vals: ti.template(), rows, cols, bs, sums: ti.template(), out: ti.temp
 
 @functools.cache
 def scan_kernel():
-    """``_scan`` in one launch."""
+    """``scan_rows`` in one launch."""
 
     @ti.kernel
     def scan(vals: ti.types.ndarray(dtype=ti.i32, ndim=2), rows: ti.i32, cols: ti.i32, bs: ti.i32,
              sums: ti.types.ndarray(dtype=ti.i64, ndim=1), out: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-        _scan(vals, rows, cols, bs, sums, out)
+        scan_rows(vals, rows, cols, bs, sums, out)
 
     return scan
 
@@ -95,7 +95,7 @@ def radix_pass_kernel():
             for i in range(blk * bs, ti.min(m, blk * bs + bs)):
                 d = ti.cast((keys_in[i] >> shift) & (DIGITS - 1), ti.i32)
                 counts[d, blk] += 1
-        _scan(counts, DIGITS, nb, scan_bs, sums, offsets)
+        scan_rows(counts, DIGITS, nb, scan_bs, sums, offsets)
         for blk in range(nb):
             for i in range(blk * bs, ti.min(m, blk * bs + bs)):
                 k = keys_in[i]

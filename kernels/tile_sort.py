@@ -25,32 +25,25 @@ import taichi as ti
 
 from .config import RasterConfig
 from .grain import item, spread
-from .radix import exclusive_scan, radix_sort
+from .radix import block_size, radix_sort, scan_rows
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
 RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
 RADIX_MASK = RADIX - 1
 
 
-@functools.cache
-def count_kernel():
-    """Per-pose intersection totals: ntiles [B, >= N] -> totals [B] (the first ``num_gaussians`` entries; a
-    pooled workspace may be longer)."""
-
-    @ti.kernel
-    def count(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32, num_gaussians: ti.i32,
-              totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
-        n = num_gaussians
-        stride = ti.static(spread())  # one task per pose on the CPU (grain.py)
-        for task in range(num_poses * stride):
-            is_item, b, _ = item(task, stride, 1)
-            if is_item:
-                s = ti.i64(0)
-                for i in range(n):
-                    s += ntiles[b, i]
-                totals[b] = s
-
-    return count
+@ti.func
+def count_tiles(ntiles: ti.template(), num_poses, num_gaussians, totals: ti.template()):
+    """Per-pose intersection totals: ntiles [B, >= N] -> totals [B] int64 (the first ``num_gaussians`` entries; a
+    pooled workspace may be longer). One task per pose on the CPU (grain.py)."""
+    stride = ti.static(spread())
+    for task in range(num_poses * stride):
+        is_item, b, _ = item(task, stride, 1)
+        if is_item:
+            s = ti.i64(0)
+            for i in range(num_gaussians):
+                s += ntiles[b, i]
+            totals[b] = s
 
 
 @functools.cache
@@ -189,11 +182,14 @@ def isect_keys_kernel():
 
 @functools.cache
 def _tile_kernels():
-    """(pose_totals, tile_starts) of the parallel binning."""
+    """(offsets_and_totals, tile_starts) of the parallel binning."""
 
     @ti.kernel
-    def pose_totals(offsets: ti.types.ndarray(dtype=ti.i64, ndim=1), num_poses: ti.i32, num_gaussians: ti.i32,
-                    totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+    def offsets_and_totals(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32, num_gaussians: ti.i32,
+                           bs: ti.i32, sums: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                           offsets: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                           totals: ti.types.ndarray(dtype=ti.i64, ndim=1)):
+        scan_rows(ntiles, num_poses, num_gaussians, bs, sums, offsets)
         for b in range(num_poses):
             totals[b] = offsets[(b + 1) * num_gaussians] - offsets[b * num_gaussians]
 
@@ -211,7 +207,7 @@ def _tile_kernels():
                 acc += counts[b * num_tiles + t]
                 tile_start[b, t + 1] = acc
 
-    return pose_totals, tile_starts
+    return offsets_and_totals, tile_starts
 
 
 def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int,
@@ -232,10 +228,9 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
         earlier poses' totals, as the serial sort writes them.
     """
     B, n = num_poses, num_gaussians
-    exclusive_scan(ntiles, B, n, scratch.sums, offsets)
-    pose_totals, tile_starts = _tile_kernels()
-    totals = np.empty(B, np.int64)
-    pose_totals(offsets, B, n, totals)
+    offsets_and_totals, tile_starts = _tile_kernels()
+    totals = np.empty(B, np.int64)  # a host array: the totals come back with the launch
+    offsets_and_totals(ntiles, B, n, block_size(B * n), scratch.sums, offsets, totals)
     m = int(totals.sum())
     buf = lists(m)
     isect_keys_kernel()(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, buf.keys, buf.ids)

@@ -125,8 +125,8 @@ class StatBuffers:
 @dataclass
 class Workspace:
     """Buffers of one image size and tiling for up to ``batch`` poses: the poses and intrinsics uploaded, the tile
-    lists' starts [B, tx * ty + 1] and offsets isect_base [B], the serial sort's counters (totals [B],
-    hist [B, RADIX], cursor [B, tx * ty]) or the parallel sort's tile counts [B * tx * ty], and, made on first
+    lists' starts [B, tx * ty + 1] and offsets isect_base [B], the serial sort's counters (hist [B, RADIX],
+    cursor [B, tx * ty]) or the parallel sort's tile counts [B * tx * ty], and, made on first
     use, the blended images and the cost scratch."""
 
     batch: int
@@ -138,7 +138,6 @@ class Workspace:
     isect_base: ti.Ndarray  # [B]
     background: ti.Ndarray  # [3]
     tile_start: ti.Ndarray
-    totals: ti.Ndarray | None = None
     hist: ti.Ndarray | None = None
     cursor: ti.Ndarray | None = None
     tile_counts: ti.Ndarray | None = None
@@ -166,7 +165,7 @@ class Workspace:
                       background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:
             return cls(**common, tile_counts=nd(ti.i32, (B * tx * ty,)))
-        return cls(**common, totals=nd(ti.i64, (B,)), hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)))
+        return cls(**common, hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)))
 
 
 @dataclass
@@ -254,6 +253,7 @@ class Pool:
     lists: TileLists | None = None
     sort_scratch: SortScratch | None = None
     query_indices: dict[bytes, ti.Ndarray] = field(default_factory=dict)
+    placeholder: ti.Ndarray | None = None
 
     def query_index(self, index: np.ndarray) -> ti.Ndarray:
         """``index`` [B] (int32: each pose's query slot) on the device; the last few are kept, a lockstep batch
@@ -309,6 +309,13 @@ class Pool:
         if self.lists.masks is None:
             self.lists.masks = ti.ndarray(ti.u64, (self.lists.capacity,))
         return self.lists.masks
+
+    def no_totals(self) -> ti.Ndarray:
+        """A device placeholder for the projection's ``totals`` where it does not count (the parallel sort): a host
+        array there would be copied to and from the device at each launch."""
+        if self.placeholder is None:
+            self.placeholder = ti.ndarray(ti.i64, (1,))
+        return self.placeholder
 
     def radix_scratch(self) -> SortScratch:
         if self.sort_scratch is None:

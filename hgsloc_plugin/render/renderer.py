@@ -19,7 +19,7 @@ from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost
 from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
-from ..kernels.tile_sort import bin_parallel, count_kernel, tile_sort_kernel
+from ..kernels.tile_sort import bin_parallel, tile_sort_kernel
 from ..pose import Pose
 from ..scene import GaussianScene
 from . import derivatives
@@ -48,8 +48,8 @@ class Renderer:
         self.sh_degree = scene.sh_degree
         self.gaussians = DeviceGaussians.from_scene(scene)
         self.pool = Pool()
-        self._project = projection_kernel(self.config, self.sh_degree)
-        self._count = count_kernel()
+        self.sort_mode = sort_mode(self.config.sort, current_arch())
+        self._project = projection_kernel(self.config, self.sh_degree, count=self.sort_mode == "serial")
         self._sort = tile_sort_kernel(self.config)
         mode = self.config.blend
         if mode == "auto":
@@ -60,7 +60,6 @@ class Renderer:
         else:
             self._blend_img, self._blend_cost = image_kernel(self.config), cost_kernel(self.config)
         self._reduce = reduce_kernel()
-        self.sort_mode = sort_mode(self.config.sort, current_arch())
         self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks
 
     # ---- the Gaussians: subsets share this renderer's kernels and pool ----
@@ -188,16 +187,15 @@ class Renderer:
                                       cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
         ws.upload("background", np.asarray(background, np.float32).reshape(3))
         tx, ty = ws.tiles
-        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
-                      camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed)
         parallel = self.sort_mode == "parallel"
+        # the serial sort's totals: counted by the projection into a host array, back with its launch
+        totals = self.pool.no_totals() if parallel else np.zeros(B, np.int64)
+        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
+                      camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed, totals)
         if parallel:
             totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, rec.offsets, B, self.n, tx, tx * ty,
                                   lambda m: self.pool.tile_lists(m, parallel=True), self.pool.radix_scratch(),
                                   ws.tile_start, ws.tile_counts)
-        else:
-            self._count(rec.ntiles, B, self.n, ws.totals)
-            totals = read_rows(ws.totals, B)
         base = np.zeros(ws.batch, np.int64)
         base[1:B] = np.cumsum(totals)[:-1]
         ws.upload("isect_base", base)

@@ -1,7 +1,7 @@
 """Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
-                                       [--batch-size N] [--shaped-queries N] [--out FILE]
+                                       [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--out FILE]
 
 One process, one run. Per case, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
@@ -169,7 +169,13 @@ def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int) -> tuple[lis
     return [r for _, r in pairs], (time.perf_counter() - t0) / len(items), gate
 
 
-def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6) -> tuple[str, str] | None:
+#: ``--layout cuda``: the renderer settings CUDA picks by default ("auto"), forced on any backend, so that the CPU
+#: runs (slowly) the GPU's launch structure: the launch counts and poses of a CUDA run
+CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
+
+
+def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,
+        raster: hp.RasterConfig | None = None) -> tuple[str, str] | None:
     loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -181,7 +187,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     priors = [se3_noise(g, deg, pct / 100 * (1.0 if metric else d), rng) for _, g, _, d in qs]
     if case == "7scenes_shaped":
         priors = shaped_priors(qs)
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     ms, ms_batch = render_ms(refiner, cam, priors[0])
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
@@ -223,19 +229,24 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, help="queries per lockstep batch (default: the backend's)")
     ap.add_argument("--shaped-queries", type=int, default=6, help="queries of the 7-Scenes-shaped job")
     ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
+    ap.add_argument("--layout", choices=["backend", "cuda"], default="backend",
+                    help="renderer settings: the backend's defaults, or CUDA's forced on any backend (its launch "
+                         "counts; slow on the CPU)")
     a = ap.parse_args()
     pct, deg = (float(x) for x in a.noise.split(","))
     arch = hp.init()
+    raster = hp.RasterConfig(**CUDA_LAYOUT) if a.layout == "cuda" else None
     bs = a.batch_size or default_batch_size()
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
-            f"ACE's and Marepo's errors); sequential, then batched ({bs} queries in lockstep).", "",
+            f"ACE's and Marepo's errors); sequential, then batched ({bs} queries in lockstep)"
+            f"{'; CUDA layout ' + str(CUDA_LAYOUT) if raster else ''}.", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
             "| batched s / query | batched speed | device calls / query | kernel launches / query | same poses |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries) for c in a.cases) if r]
+    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster) for c in a.cases) if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -9,8 +9,8 @@ backend and run. Shapes: ``m`` entries; ``nb`` blocks of ``bs`` entries.
   exclusive scan in digit-major order (all blocks' entries of digit 0 first, block by block), then each block
   scatters its entries in order.
 
-Each scan and each radix pass is one launch (its steps are loops of one kernel, run in turn): a launch costs the
-host tens of microseconds, and a render's sort made 28 of them.
+A scan, and a whole radix sort, are one launch each (their steps are loops of one kernel, run in turn): a launch
+costs the host tens of microseconds, and a render's sort made 28 of them.
 """
 
 import functools
@@ -77,35 +77,74 @@ def exclusive_scan(vals, rows: int, cols: int, sums, out) -> None:
     scan_kernel()(vals, rows, cols, block_size(n), sums, out)
 
 
+@ti.func
+def radix_pass(keys_in: ti.template(), ids_in: ti.template(), m, shift, bs, nb, scan_bs, counts: ti.template(),
+               sums: ti.template(), offsets: ti.template(), keys_out: ti.template(), ids_out: ti.template()):
+    """One radix pass of the first ``m`` (key, id) pairs on the digit at ``shift``, as loops run in turn: per (digit,
+    block) counts [DIGITS, nb] (``bs`` entries a block), their exclusive scan in digit-major order (all blocks'
+    entries of digit 0 first, block by block; ``scan_bs`` counts a scan block) into ``offsets``, then each block
+    scatters its entries in order (stable)."""
+    for d, blk in ti.ndrange(DIGITS, nb):
+        counts[d, blk] = 0
+    for blk in range(nb):
+        for i in range(blk * bs, ti.min(m, blk * bs + bs)):
+            d = ti.cast((keys_in[i] >> shift) & (DIGITS - 1), ti.i32)
+            counts[d, blk] += 1
+    scan_rows(counts, DIGITS, nb, scan_bs, sums, offsets)
+    for blk in range(nb):
+        for i in range(blk * bs, ti.min(m, blk * bs + bs)):
+            k = keys_in[i]
+            j = ti.cast((k >> shift) & (DIGITS - 1), ti.i32) * nb + blk
+            pos = offsets[j]
+            offsets[j] = pos + 1
+            keys_out[pos] = k
+            ids_out[pos] = ids_in[i]
+
+
+def passes(bits: int) -> int:
+    """Radix passes that sort keys on their lowest ``bits`` bits."""
+    return -(-bits // DIGIT_BITS)
+
+
+def blocks(m: int) -> tuple[int, int, int]:
+    """(entries a block, blocks, counts a scan block) of a radix sort of ``m`` entries."""
+    bs = block_size(m)
+    nb = -(-m // bs)
+    return bs, nb, block_size(DIGITS * nb)
+
+
 @functools.cache
-def radix_pass_kernel():
-    """One radix pass in one launch: per (digit, block) counts [DIGITS, nb] of the keys' digit at ``shift``, their
-    exclusive scan in digit-major order (all blocks' entries of digit 0 first, block by block) into ``offsets``,
-    then each block scatters its entries in order (stable)."""
+def sort_passes(num_passes: int):
+    """A ti.func running ``num_passes`` radix passes (``radix_pass``, lowest digit first) ping-ponging from (keys,
+    ids) to (keys_tmp, ids_tmp) and back: the sorted pairs end in (keys, ids) after an even number of passes, else
+    in the scratch pair."""
+
+    @ti.func
+    def run(keys: ti.template(), ids: ti.template(), keys_tmp: ti.template(), ids_tmp: ti.template(), m, bs, nb,
+            scan_bs, counts: ti.template(), sums: ti.template(), offsets: ti.template()):
+        for p in ti.static(range(num_passes)):
+            if ti.static(p % 2 == 0):
+                radix_pass(keys, ids, m, p * DIGIT_BITS, bs, nb, scan_bs, counts, sums, offsets, keys_tmp, ids_tmp)
+            else:
+                radix_pass(keys_tmp, ids_tmp, m, p * DIGIT_BITS, bs, nb, scan_bs, counts, sums, offsets, keys, ids)
+
+    return run
+
+
+@functools.cache
+def radix_sort_kernel(num_passes: int):
+    """:func:`sort_passes` in one launch."""
+    run = sort_passes(num_passes)
+    i64, i32 = ti.i64, ti.i32
 
     @ti.kernel
-    def radix_pass(keys_in: ti.types.ndarray(dtype=ti.i64, ndim=1), ids_in: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   m: ti.i32, shift: ti.i32, bs: ti.i32, nb: ti.i32, scan_bs: ti.i32,
-                   counts: ti.types.ndarray(dtype=ti.i32, ndim=2), sums: ti.types.ndarray(dtype=ti.i64, ndim=1),
-                   offsets: ti.types.ndarray(dtype=ti.i64, ndim=1), keys_out: ti.types.ndarray(dtype=ti.i64, ndim=1),
-                   ids_out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-        for d, blk in ti.ndrange(DIGITS, nb):
-            counts[d, blk] = 0
-        for blk in range(nb):
-            for i in range(blk * bs, ti.min(m, blk * bs + bs)):
-                d = ti.cast((keys_in[i] >> shift) & (DIGITS - 1), ti.i32)
-                counts[d, blk] += 1
-        scan_rows(counts, DIGITS, nb, scan_bs, sums, offsets)
-        for blk in range(nb):
-            for i in range(blk * bs, ti.min(m, blk * bs + bs)):
-                k = keys_in[i]
-                j = ti.cast((k >> shift) & (DIGITS - 1), ti.i32) * nb + blk
-                pos = offsets[j]
-                offsets[j] = pos + 1
-                keys_out[pos] = k
-                ids_out[pos] = ids_in[i]
+    def radix_sort_passes(keys: ti.types.ndarray(dtype=i64, ndim=1), ids: ti.types.ndarray(dtype=i32, ndim=1),
+                          keys_tmp: ti.types.ndarray(dtype=i64, ndim=1), ids_tmp: ti.types.ndarray(dtype=i32, ndim=1),
+                          m: i32, bs: i32, nb: i32, scan_bs: i32, counts: ti.types.ndarray(dtype=i32, ndim=2),
+                          sums: ti.types.ndarray(dtype=i64, ndim=1), offsets: ti.types.ndarray(dtype=i64, ndim=1)):
+        run(keys, ids, keys_tmp, ids_tmp, m, bs, nb, scan_bs, counts, sums, offsets)
 
-    return radix_pass
+    return radix_sort_passes
 
 
 def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets, sums):
@@ -120,11 +159,6 @@ def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets,
     """
     if m == 0:
         return keys, ids
-    bs = block_size(m)
-    nb = -(-m // bs)
-    radix_pass = radix_pass_kernel()
-    src, dst = (keys, ids), (keys_tmp, ids_tmp)
-    for shift in range(0, bits, DIGIT_BITS):
-        radix_pass(src[0], src[1], m, shift, bs, nb, block_size(DIGITS * nb), counts, sums, offsets, dst[0], dst[1])
-        src, dst = dst, src
-    return src
+    n = passes(bits)
+    radix_sort_kernel(n)(keys, ids, keys_tmp, ids_tmp, m, *blocks(m), counts, sums, offsets)
+    return (keys, ids) if n % 2 == 0 else (keys_tmp, ids_tmp)

@@ -12,7 +12,7 @@ this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
 On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread).
 There (``sort="parallel"``) each visible Gaussian writes one 64-bit key per tile it touches, in parallel,
 ``(pose * tiles + tile) << 32 | depth bits``, at its exclusive prefix sum of the tile counts
-(:func:`isect_keys_kernel`); the keys are sorted by a stable LSD radix sort written as Taichi kernels
+(:func:`write_keys`); the keys are sorted by a stable LSD radix sort written as Taichi kernels
 (``radix.py``) and each tile's range is its key count (:func:`bin_parallel`). Keys are written in Gaussian order,
 so the stable sort leaves ties in index order: the lists are those of the serial sort, entry for entry.
 """
@@ -25,7 +25,7 @@ import taichi as ti
 
 from .config import RasterConfig
 from .grain import item, spread
-from .radix import block_size, radix_sort, scan_rows
+from .radix import block_size, blocks, passes, scan_rows, sort_passes
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
 RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
@@ -150,39 +150,44 @@ def tile_sort_kernel(config: RasterConfig):
     return tile_sort
 
 
+@ti.func
+def write_keys(depth: ti.template(), rect: ti.template(), ntiles: ti.template(), offsets: ti.template(), tiles_x,
+               num_tiles, num_poses, num_gaussians, keys: ti.template(), ids: ti.template()):
+    """Parallel binning, step 1 (one thread per pose and Gaussian): depth [B, >= N] f32, rect [B, >= N, 4] i32
+    (x0, y0, x1, y1 tile ranges), ntiles [B, >= N] i32, offsets [B * N] i64 (exclusive prefix sum of ntiles over
+    pose-major (pose, Gaussian)) -> keys [>= M] i64 ``(pose * num_tiles + tile) << 32 | depth bits`` (depths are
+    positive, so their bits order like the values) and ids [>= M] i32 (Gaussian index), M = the sum of ntiles."""
+    for b, i in ti.ndrange(num_poses, num_gaussians):
+        if ntiles[b, i] > 0:
+            k = ti.cast(offsets[b * num_gaussians + i], ti.i32)
+            low = ti.cast(ti.bit_cast(depth[b, i], ti.i32), ti.i64)
+            for ty in range(rect[b, i, 1], rect[b, i, 3]):
+                for tx in range(rect[b, i, 0], rect[b, i, 2]):
+                    keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
+                    ids[k] = i
+                    k += 1
+
+
+@ti.func
+def tile_starts(keys: ti.template(), m, num_poses, num_tiles, counts: ti.template(), tile_start: ti.template()):
+    """Parallel binning, last step: each tile's start in the sorted keys [M] (relative to its pose's first entry)
+    into tile_start [B, num_tiles + 1] (the last column: the pose's total); counts [>= B * num_tiles] scratch."""
+    for j in range(num_poses * num_tiles):
+        counts[j] = 0
+    for k in range(m):
+        ti.atomic_add(counts[ti.cast(keys[k] >> 32, ti.i32)], 1)
+    for b in range(num_poses):
+        acc = 0
+        tile_start[b, 0] = 0
+        for t in range(num_tiles):
+            acc += counts[b * num_tiles + t]
+            tile_start[b, t + 1] = acc
+
+
 @functools.cache
-def isect_keys_kernel():
-    """Parallel binning, step 1 (one thread per pose and Gaussian).
-
-    Kernel arguments:
-        depth [B, >= N] f32, rect [B, >= N, 4] i32 (x0, y0, x1, y1 tile ranges), ntiles [B, >= N] i32,
-        offsets [B * N] i64 (exclusive prefix sum of ntiles over pose-major (pose, Gaussian)), tiles_x,
-        num_tiles, num_poses, num_gaussians N;
-        outputs: keys [>= M] i64 ``(pose * num_tiles + tile) << 32 | depth bits`` (depths are positive, so their
-        bits order like the values), ids [>= M] i32 (Gaussian index), M = the sum of ntiles.
-    """
-
-    @ti.kernel
-    def isect_keys(depth: ti.types.ndarray(dtype=ti.f32, ndim=2), rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
-                   ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), offsets: ti.types.ndarray(dtype=ti.i64, ndim=1),
-                   tiles_x: ti.i32, num_tiles: ti.i32, num_poses: ti.i32, num_gaussians: ti.i32,
-                   keys: ti.types.ndarray(dtype=ti.i64, ndim=1), ids: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-        for b, i in ti.ndrange(num_poses, num_gaussians):
-            if ntiles[b, i] > 0:
-                k = ti.cast(offsets[b * num_gaussians + i], ti.i32)
-                low = ti.cast(ti.bit_cast(depth[b, i], ti.i32), ti.i64)
-                for ty in range(rect[b, i, 1], rect[b, i, 3]):
-                    for tx in range(rect[b, i, 0], rect[b, i, 2]):
-                        keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
-                        ids[k] = i
-                        k += 1
-
-    return isect_keys
-
-
-@functools.cache
-def _tile_kernels():
-    """(offsets_and_totals, tile_starts) of the parallel binning."""
+def offsets_kernel():
+    """Parallel binning, before the lists are sized: the exclusive prefix sum of ntiles [B, >= N] (pose-major)
+    into offsets [B * N + 1] and each pose's total into ``totals`` [B] (a host array: back with the launch)."""
 
     @ti.kernel
     def offsets_and_totals(ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2), num_poses: ti.i32, num_gaussians: ti.i32,
@@ -193,21 +198,33 @@ def _tile_kernels():
         for b in range(num_poses):
             totals[b] = offsets[(b + 1) * num_gaussians] - offsets[b * num_gaussians]
 
-    @ti.kernel
-    def tile_starts(keys: ti.types.ndarray(dtype=ti.i64, ndim=1), m: ti.i32, num_poses: ti.i32, num_tiles: ti.i32,
-                    counts: ti.types.ndarray(dtype=ti.i32, ndim=1), tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2)):
-        for j in range(num_poses * num_tiles):
-            counts[j] = 0
-        for k in range(m):
-            ti.atomic_add(counts[ti.cast(keys[k] >> 32, ti.i32)], 1)
-        for b in range(num_poses):
-            acc = 0
-            tile_start[b, 0] = 0
-            for t in range(num_tiles):
-                acc += counts[b * num_tiles + t]
-                tile_start[b, t + 1] = acc
+    return offsets_and_totals
 
-    return offsets_and_totals, tile_starts
+
+@functools.cache
+def lists_kernel(num_passes: int):
+    """Parallel binning once the lists are sized, in one launch: the keys (:func:`write_keys`), ``num_passes``
+    radix passes (``radix.sort_passes``) and the tile starts (:func:`tile_starts`)."""
+    sort = sort_passes(num_passes)
+    i64, i32 = ti.i64, ti.i32
+
+    @ti.kernel
+    def sorted_lists(depth: ti.types.ndarray(dtype=ti.f32, ndim=2), rect: ti.types.ndarray(dtype=i32, ndim=3),
+                     ntiles: ti.types.ndarray(dtype=i32, ndim=2), offsets: ti.types.ndarray(dtype=i64, ndim=1),
+                     tiles_x: i32, num_tiles: i32, num_poses: i32, num_gaussians: i32, m: i32, bs: i32, nb: i32,
+                     scan_bs: i32, keys: ti.types.ndarray(dtype=i64, ndim=1), ids: ti.types.ndarray(dtype=i32, ndim=1),
+                     keys_tmp: ti.types.ndarray(dtype=i64, ndim=1), ids_tmp: ti.types.ndarray(dtype=i32, ndim=1),
+                     counts: ti.types.ndarray(dtype=i32, ndim=2), sums: ti.types.ndarray(dtype=i64, ndim=1),
+                     digit_offsets: ti.types.ndarray(dtype=i64, ndim=1),
+                     tile_counts: ti.types.ndarray(dtype=i32, ndim=1), tile_start: ti.types.ndarray(dtype=i32, ndim=2)):
+        write_keys(depth, rect, ntiles, offsets, tiles_x, num_tiles, num_poses, num_gaussians, keys, ids)
+        sort(keys, ids, keys_tmp, ids_tmp, m, bs, nb, scan_bs, counts, sums, digit_offsets)
+        if ti.static(num_passes % 2 == 0):
+            tile_starts(keys, m, num_poses, num_tiles, tile_counts, tile_start)
+        else:
+            tile_starts(keys_tmp, m, num_poses, num_tiles, tile_counts, tile_start)
+
+    return sorted_lists
 
 
 def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int,
@@ -228,15 +245,13 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
         earlier poses' totals, as the serial sort writes them.
     """
     B, n = num_poses, num_gaussians
-    offsets_and_totals, tile_starts = _tile_kernels()
     totals = np.empty(B, np.int64)  # a host array: the totals come back with the launch
-    offsets_and_totals(ntiles, B, n, block_size(B * n), scratch.sums, offsets, totals)
+    offsets_kernel()(ntiles, B, n, block_size(B * n), scratch.sums, offsets, totals)
     m = int(totals.sum())
     buf = lists(m)
-    isect_keys_kernel()(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, buf.keys, buf.ids)
-    bits = 32 + max(1, (B * num_tiles - 1).bit_length())
-    keys, ids = radix_sort(buf.keys, buf.ids, buf.keys_tmp, buf.ids_tmp, m, bits, scratch.counts,
-                           scratch.offsets, scratch.sums)
-    buf.isect = ids
-    tile_starts(keys, m, B, num_tiles, tile_counts, tile_start)
+    num_passes = passes(32 + max(1, (B * num_tiles - 1).bit_length()))
+    lists_kernel(num_passes)(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, m, *blocks(m), buf.keys,
+                             buf.ids, buf.keys_tmp, buf.ids_tmp, scratch.counts, scratch.sums, scratch.offsets,
+                             tile_counts, tile_start)
+    buf.isect = buf.ids if num_passes % 2 == 0 else buf.ids_tmp
     return totals

@@ -3,6 +3,7 @@
 Usage: python benchmarks/basin.py [--cases snow_sharp snow lego room donut] [--queries 6] [--wide 16,8]
                                   [--rows ROW ...] [--out FILE]
        python benchmarks/basin.py --agreement [--cases ...] [--rows ...]
+       python benchmarks/basin.py --routes [--out FILE]
 
 One run. Real photos first: the 6 snow photos on the good map (``snow_sharp.ply``) and on the imperfect one
 (``snow.ply``), then lego's held-out renders, the demo room and the donut (photo-degraded renders). Lengths are in
@@ -16,6 +17,9 @@ to the 95th percentile). Columns: the share within 1 cm-eq / 0.5 deg, within 2 c
 depth) and within 5 cm-eq / 5 deg before and after, queries ending worse than their prior (any amount), queries
 that searched (the usual or the wide search), renders per query, seconds per query.
 
+``--routes``: also a table of where each query whose gradient route was refused went next (the usual search
+accepted, the wide search accepted or refused, no wide search), per refusal reason.
+
 ``--agreement``: every query whose usual search is refused, with the wide search run whatever the routes found
 (``same_minimum_pixels=0``): the gradient route's and the search's refusal reasons, how far apart their poses are
 (image motion at the final size), and what the wide search returned (the evidence for
@@ -25,6 +29,7 @@ that searched (the usual or the wide search), renders per query, seconds per que
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -77,7 +82,58 @@ def within(e: np.ndarray, cm: float, deg: float) -> float:
     return 100.0 * float(np.mean((e[:, 0] <= cm + 1e-6) & (e[:, 1] <= deg + 1e-6)))  # exact-size priors count
 
 
-def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = None) -> list[str]:
+@contextlib.contextmanager
+def route_verdicts():
+    """While inside, each judged route of a refinement is appended to the yielded list as (route name, pose,
+    refusal reason or None, plan) (wraps ``Refiner._judged``; behaviour unchanged)."""
+    from hgsloc_plugin.refine import refiner as refiner_mod
+
+    routes: list = []
+    judged = refiner_mod.Refiner._judged
+
+    def recording(self, ctx, cand):
+        out = judged(self, ctx, cand)
+        routes.append((cand.route, cand.pose, out[1].rejected, ctx.plan))
+        return out
+
+    refiner_mod.Refiner._judged = recording
+    try:
+        yield routes
+    finally:
+        refiner_mod.Refiner._judged = judged
+
+
+def outcome(routes: list) -> tuple[str, str] | None:
+    """(the gradient route's refusal, where the query went next) from one refinement's ``route_verdicts``; None
+    when the gradient route was accepted or did not run."""
+    if not routes or routes[0][0] != "gradient" or routes[0][2] is None:
+        return None
+    verdict = {name: why for name, _, why, _ in routes}
+    if "search" not in verdict:
+        return routes[0][2], "no search"
+    if verdict["search"] is None:
+        return routes[0][2], "usual search accepted"
+    if "wide search" not in verdict:
+        return routes[0][2], "no wide search"
+    return routes[0][2], "wide search " + ("accepted" if verdict["wide search"] is None else "refused")
+
+
+OUTCOMES = ("usual search accepted", "wide search accepted", "wide search refused", "no wide search", "no search")
+
+
+def outcome_table(counts: dict) -> list[str]:
+    """Markdown (``--routes``): per refusal reason of the gradient route, where its queries went."""
+    lines = ["", "Where each refused gradient route went (`--routes`):", "",
+             "| gradient route refused as | " + " | ".join(OUTCOMES) + " |", "|---" * (len(OUTCOMES) + 1) + "|"]
+    for why in sorted({w for w, _ in counts}, key=lambda w: -sum(v for (x, _), v in counts.items() if x == w)):
+        total = sum(v for (x, _), v in counts.items() if x == why)
+        lines.append(f"| {why} ({total}) | " + " | ".join(str(counts.get((why, o), 0)) for o in OUTCOMES) + " |")
+    return lines
+
+
+def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = None,
+        outcomes: dict | None = None) -> list[str]:
+    """Markdown table of case ``name``; ``outcomes``: counts of (gradient refusal, next step) are added there."""
     case = CASES[name](n)
     if case is None:
         return []
@@ -95,7 +151,11 @@ def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = Non
         e0, e1, ren, searched = [], [], [], 0
         t0 = time.perf_counter()
         for g, img, p, s in zip(gts, imgs, ps, scale):
-            r = refiner.refine(img, cam, p)
+            with route_verdicts() as routes:
+                r = refiner.refine(img, cam, p)
+            went = outcome(routes)
+            if outcomes is not None and went is not None:
+                outcomes[went] = outcomes.get(went, 0) + 1
             for lst, pose in ((e0, p), (e1, r.pose)):
                 t, a = pose.errors_to(g)
                 lst.append((t * s, a))
@@ -115,41 +175,27 @@ def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = Non
 
 def agreement(name: str, n: int, rows: list[str] | None) -> list[str]:
     """Markdown rows (``--agreement``) of the queries of case ``name`` that reached the wide search."""
-    from hgsloc_plugin.refine import refiner as refiner_mod
-
     case = CASES[name](n)
     if case is None:
         return []
     _, scene, cam, gts, imgs, scale, bg = case
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg, same_minimum_pixels=0.0))
-    routes: list = []
-    judged = refiner_mod.Refiner._judged
-
-    def recording(self, ctx, cand):
-        out = judged(self, ctx, cand)
-        routes.append((cand.pose, out[1].rejected, ctx.plan))
-        return out
-
-    refiner_mod.Refiner._judged = recording
     lines = []
-    try:
-        for row, ps in priors(gts, scale).items():
-            if row not in (rows or AGREEMENT_ROWS):
-                continue
-            for k, (g, img, p, s) in enumerate(zip(gts, imgs, ps, scale)):
-                routes.clear()
+    for row, ps in priors(gts, scale).items():
+        if row not in (rows or AGREEMENT_ROWS):
+            continue
+        for k, (g, img, p, s) in enumerate(zip(gts, imgs, ps, scale)):
+            with route_verdicts() as routes:
                 r = refiner.refine(img, cam, p)
-                if len(routes) < 3:
-                    continue
-                (pg, why_g, plan), (ps_, why_s, _) = routes[0], routes[1]
-                px = plan.pixels_apart(pg, ps_)
-                t, a = r.pose.errors_to(g)
-                line = (f"| {name} | {row} | {k} | {why_g} | {why_s} | {px:.2f} | "
-                        f"{'accepted' if r.accepted else routes[2][1]} | {t * s:.2f} / {a:.2f} | {r.renders} |")
-                print(line, flush=True)
-                lines.append(line)
-    finally:
-        refiner_mod.Refiner._judged = judged
+            if len(routes) < 3:
+                continue
+            (_, pg, why_g, plan), (_, ps_, why_s, _) = routes[0], routes[1]
+            px = plan.pixels_apart(pg, ps_)
+            t, a = r.pose.errors_to(g)
+            line = (f"| {name} | {row} | {k} | {why_g} | {why_s} | {px:.2f} | "
+                    f"{'accepted' if r.accepted else routes[2][2]} | {t * s:.2f} / {a:.2f} | {r.renders} |")
+            print(line, flush=True)
+            lines.append(line)
     return lines
 
 
@@ -166,6 +212,7 @@ def main() -> None:
     ap.add_argument("--rows", nargs="+", help="only these rows (e.g. '30 cm-eq / 8 deg')")
     ap.add_argument("--out", type=Path, help="also write the tables as Markdown here")
     ap.add_argument("--agreement", action="store_true", help="only the routes' agreement before a wide search")
+    ap.add_argument("--routes", action="store_true", help="also tabulate where each refused gradient route went")
     a = ap.parse_args()
     if a.agreement:
         print("| case | prior | query | gradient route | search | apart (px) | wide search | after (cm-eq / deg) "
@@ -177,9 +224,12 @@ def main() -> None:
     config = hp.RefineConfig(**({"wide_step_pixels": wide} if wide is not None else {}))
     arch = hp.init()
     t0 = time.perf_counter()
-    lines = []
+    lines, outcomes = [], {}
     for c in a.cases:
-        lines += run(c, a.queries, config, a.rows)
+        lines += run(c, a.queries, config, a.rows, outcomes)
+    if a.routes:
+        lines += outcome_table(outcomes)
+        print("\n".join(outcome_table(outcomes)), flush=True)
     if a.out:
         head = ["# Basin (`benchmarks/basin.py`)", "",
                 f"Regenerate: `python benchmarks/basin.py --out {a.out}`. Backend {arch}; "

@@ -57,27 +57,27 @@ def uses_masks(config: RasterConfig, arch: str) -> bool:
 
 
 @functools.cache
-def projection_grad_kernel(config: RasterConfig):
-    """Compiled ``projection_grad``.
+def projection_grad_func(config: RasterConfig):
+    """``projection_grad`` (a ti.func: one parallel loop).
 
-    Kernel arguments:
+    Arguments:
         means [N, 3], cov3d [N, 6], viewmats [B, 4, 4] (``projection.view_rt``), intrin [4] (fx, fy, cx, cy),
         width, height, num_poses, ntiles [B, N] (from the projection: 0 = culled, skipped);
         output: dpacked [B, N, NDER].
     """
     eps2d = config.eps2d
 
-    @ti.kernel
+    @ti.func
     def projection_grad(
-        means: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        cov3d: ti.types.ndarray(dtype=ti.f32, ndim=2),
-        viewmats: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
-        width: ti.i32,
-        height: ti.i32,
-        num_poses: ti.i32,
-        ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        dpacked: ti.types.ndarray(dtype=ti.f32, ndim=3),
+        means: ti.template(),
+        cov3d: ti.template(),
+        viewmats: ti.template(),
+        intrin: ti.template(),
+        width,
+        height,
+        num_poses,
+        ntiles: ti.template(),
+        dpacked: ti.template(),
     ):
         n = means.shape[0]
         fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
@@ -128,10 +128,10 @@ def projection_grad_kernel(config: RasterConfig):
 
 
 @functools.cache
-def pixel_masks_kernel(config: RasterConfig):
-    """Compiled ``pixel_masks`` (one task per pose and tile; ``config.grad_tile_size`` <= 8).
+def pixel_masks_func(config: RasterConfig):
+    """``pixel_masks`` (a ti.func: one task per pose and tile; ``config.grad_tile_size`` <= 8).
 
-    Kernel arguments:
+    Arguments:
         packed [B, N, Rec.SIZE], tile_start [B, T + 1], isect [M], isect_base [B]: the projection's records and
         the tile lists binned at ``config.grad_tile_size``; tiles_x, tiles_y, num_poses, width, height;
         output: masks [>= M] u64, entry k's bit ``(py - y0) * tile + (px - x0)`` set for each pixel of its tile
@@ -140,18 +140,18 @@ def pixel_masks_kernel(config: RasterConfig):
     """
     tile = config.grad_tile_size
 
-    @ti.kernel
+    @ti.func
     def pixel_masks(
-        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
-        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
-        tiles_x: ti.i32,
-        tiles_y: ti.i32,
-        num_poses: ti.i32,
-        width: ti.i32,
-        height: ti.i32,
-        masks: ti.types.ndarray(dtype=ti.u64, ndim=1),
+        packed: ti.template(),
+        tile_start: ti.template(),
+        isect: ti.template(),
+        isect_base: ti.template(),
+        tiles_x,
+        tiles_y,
+        num_poses,
+        width,
+        height,
+        masks: ti.template(),
     ):
         stride = ti.static(spread())  # one task per tile on the CPU (grain.py)
         nt = tiles_x * tiles_y
@@ -193,26 +193,26 @@ def pixel_masks_kernel(config: RasterConfig):
 
 
 @functools.cache
-def blend_grad_kernel(config: RasterConfig, masked: bool):
-    """Compiled ``blend_grad`` (one task per pixel): colour [B, H, W, 3], alpha [B, H, W] and the colour's
+def blend_grad_func(config: RasterConfig, masked: bool):
+    """``blend_grad`` (a ti.func: one task per pixel): colour [B, H, W, 3], alpha [B, H, W] and the colour's
     derivatives drgb [B, H, W, 3 * 6] (channel-major). Its tile lists are binned at ``config.grad_tile_size``;
     ``masked``: ``masks`` [>= M] u64 are ``pixel_masks``'s, else any u64 array (unread)."""
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.grad_tile_size
 
-    @ti.kernel
+    @ti.func
     def blend_grad(
-        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        dpacked: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
-        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
-        masks: ti.types.ndarray(dtype=ti.u64, ndim=1),
-        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
-        tiles_x: ti.i32,
-        num_poses: ti.i32,
-        out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
-        out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        out_d: ti.types.ndarray(dtype=ti.f32, ndim=4),
+        packed: ti.template(),
+        dpacked: ti.template(),
+        tile_start: ti.template(),
+        isect: ti.template(),
+        isect_base: ti.template(),
+        masks: ti.template(),
+        background: ti.template(),
+        tiles_x,
+        num_poses,
+        out_rgb: ti.template(),
+        out_alpha: ti.template(),
+        out_d: ti.template(),
     ):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
@@ -272,3 +272,42 @@ def blend_grad_kernel(config: RasterConfig, masked: bool):
 
     return blend_grad
 
+
+@functools.cache
+def derivative_images_kernel(config: RasterConfig, masked: bool):
+    """The derivative pass after the projection and tile sort of the same poses, in one launch: the records'
+    derivatives (``projection_grad``), with ``masked`` the pixel masks (``pixel_masks``), then the colour, alpha
+    and colour derivatives (``blend_grad``). Arguments: those of the three, in that order, each once."""
+    records, masks_of, blend = projection_grad_func(config), pixel_masks_func(config), blend_grad_func(config, masked)
+    f32, i32 = ti.f32, ti.i32
+
+    @ti.kernel
+    def derivative_images(
+        means: ti.types.ndarray(dtype=f32, ndim=2),
+        cov3d: ti.types.ndarray(dtype=f32, ndim=2),
+        viewmats: ti.types.ndarray(dtype=f32, ndim=3),
+        intrin: ti.types.ndarray(dtype=f32, ndim=1),
+        width: i32,
+        height: i32,
+        num_poses: i32,
+        ntiles: ti.types.ndarray(dtype=i32, ndim=2),
+        dpacked: ti.types.ndarray(dtype=f32, ndim=3),
+        packed: ti.types.ndarray(dtype=f32, ndim=3),
+        tile_start: ti.types.ndarray(dtype=i32, ndim=2),
+        isect: ti.types.ndarray(dtype=i32, ndim=1),
+        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+        masks: ti.types.ndarray(dtype=ti.u64, ndim=1),
+        background: ti.types.ndarray(dtype=f32, ndim=1),
+        tiles_x: i32,
+        tiles_y: i32,
+        out_rgb: ti.types.ndarray(dtype=f32, ndim=4),
+        out_alpha: ti.types.ndarray(dtype=f32, ndim=3),
+        out_d: ti.types.ndarray(dtype=f32, ndim=4),
+    ):
+        records(means, cov3d, viewmats, intrin, width, height, num_poses, ntiles, dpacked)
+        if ti.static(masked):
+            masks_of(packed, tile_start, isect, isect_base, tiles_x, tiles_y, num_poses, width, height, masks)
+        blend(packed, dpacked, tile_start, isect, isect_base, masks, background, tiles_x, num_poses, out_rgb,
+              out_alpha, out_d)
+
+    return derivative_images

@@ -12,7 +12,7 @@ import numpy as np
 from ..camera import Camera
 from ..costs import cost_from_window
 from ..kernels import window_grad
-from ..kernels.pose_grad import NXI, blend_grad_kernel, pixel_masks_kernel, projection_grad_kernel
+from ..kernels.pose_grad import NXI, derivative_images_kernel
 from ..pose import Pose
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 
@@ -38,18 +38,14 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     g = derivative_workspace(r, camera, min(r.grad_chunk, len(part)))
     rec, drec, gs = r.pool.records, r.pool.derivative_records, r.gaussians
     n = len(part)
-    projection_grad_kernel(r.config)(gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n,
-                                     rec.ntiles, drec.dpacked)
     # one task per pixel on every backend (a tile-parallel twin was slower on the CPU: benchmarks/defaults.md),
     # each skipping the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
     tx, ty = ws.tiles
     lists = r.pool.lists
-    masks = r.pool.pixel_masks()
-    if r.grad_masks:
-        pixel_masks_kernel(r.config)(rec.packed, ws.tile_start, lists.isect, ws.isect_base, tx, ty, n, camera.width,
-                                     camera.height, masks)
-    blend_grad_kernel(r.config, r.grad_masks)(rec.packed, drec.dpacked, ws.tile_start, lists.isect, ws.isect_base,
-                                              masks, ws.background, tx, n, g.rgb, g.alpha, g.drgb)
+    derivative_images_kernel(r.config, r.grad_masks)(
+        gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
+        rec.packed, ws.tile_start, lists.isect, ws.isect_base, r.pool.pixel_masks(), ws.background, tx, ty,
+        g.rgb, g.alpha, g.drgb)
     return g
 
 

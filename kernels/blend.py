@@ -82,23 +82,16 @@ def _make_shade(config: RasterConfig):
 
 
 @functools.cache
-def image_kernel(config: RasterConfig):
-    """Kernel writing colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W]."""
+def image_func(config: RasterConfig):
+    """A ti.func (one task per pixel) writing colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W];
+    arguments (packed, tile_start, isect, isect_base, background, tiles_x, tiles_y, num_poses, out_rgb,
+    out_alpha, out_depth), ``tiles_y`` unused (the signature of :func:`splat_image_func`)."""
     shade = _make_shade(config)
 
-    @ti.kernel
-    def blend_image(
-        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
-        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
-        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
-        tiles_x: ti.i32,
-        num_poses: ti.i32,
-        out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
-        out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        out_depth: ti.types.ndarray(dtype=ti.f32, ndim=3),
-    ):
+    @ti.func
+    def blend_image(packed: ti.template(), tile_start: ti.template(), isect: ti.template(), isect_base: ti.template(),
+                    background: ti.template(), tiles_x, tiles_y, num_poses, out_rgb: ti.template(),
+                    out_alpha: ti.template(), out_depth: ti.template()):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         for b, py, px in ti.ndrange(num_poses, H, W):
@@ -266,25 +259,15 @@ def _make_splat_tile(config: RasterConfig):
 
 
 @functools.cache
-def splat_image_kernel(config: RasterConfig):
-    """Tile-parallel (CPU-friendly) twin of :func:`image_kernel`; same outputs."""
+def splat_image_func(config: RasterConfig):
+    """Tile-parallel (CPU-friendly) twin of :func:`image_func`; same arguments and outputs."""
     splat_tile = _make_splat_tile(config)
     tile = config.tile_size
 
-    @ti.kernel
-    def splat_image(
-        packed: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
-        isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
-        background: ti.types.ndarray(dtype=ti.f32, ndim=1),
-        tiles_x: ti.i32,
-        tiles_y: ti.i32,
-        num_poses: ti.i32,
-        out_rgb: ti.types.ndarray(dtype=ti.f32, ndim=4),
-        out_alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        out_depth: ti.types.ndarray(dtype=ti.f32, ndim=3),
-    ):
+    @ti.func
+    def splat_image(packed: ti.template(), tile_start: ti.template(), isect: ti.template(), isect_base: ti.template(),
+                    background: ti.template(), tiles_x, tiles_y, num_poses, out_rgb: ti.template(),
+                    out_alpha: ti.template(), out_depth: ti.template()):
         H = out_rgb.shape[1]
         W = out_rgb.shape[2]
         stride = ti.static(spread())  # one task per tile on the CPU (grain.py)
@@ -346,3 +329,21 @@ def splat_cost_kernel(config: RasterConfig):
                     run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]
 
     return splat_cost
+
+
+@functools.cache
+def image_kernel(config: RasterConfig, splat: bool):
+    """The image blend (:func:`splat_image_func` or :func:`image_func`) in a launch of its own."""
+    blend = splat_image_func(config) if splat else image_func(config)
+    f32, i32 = ti.f32, ti.i32
+
+    @ti.kernel
+    def blend_images(packed: ti.types.ndarray(dtype=f32, ndim=3), tile_start: ti.types.ndarray(dtype=i32, ndim=2),
+                     isect: ti.types.ndarray(dtype=i32, ndim=1), isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                     background: ti.types.ndarray(dtype=f32, ndim=1), tiles_x: i32, tiles_y: i32, num_poses: i32,
+                     out_rgb: ti.types.ndarray(dtype=f32, ndim=4), out_alpha: ti.types.ndarray(dtype=f32, ndim=3),
+                     out_depth: ti.types.ndarray(dtype=f32, ndim=3)):
+        blend(packed, tile_start, isect, isect_base, background, tiles_x, tiles_y, num_poses, out_rgb, out_alpha,
+              out_depth)
+
+    return blend_images

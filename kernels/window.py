@@ -27,7 +27,7 @@ import math
 
 import taichi as ti
 
-from .blend import reduce_rows
+from .blend import image_func, reduce_rows, splat_image_func
 from .grain import item, spread
 
 SIGMA = 1.5
@@ -175,17 +175,26 @@ def _vertical_cost(with_luminance: bool):
 
 
 @functools.cache
-def window_cost_kernel(with_luminance: bool):
-    """The windowed similarity of B renderings in one launch: the horizontal pass into hbuf [B, H, W, 3, 3], the
-    vertical pass's per-row sums into rows [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64
-    (sum of the per-pixel values, valid pixels; a host array: no read-back launch)."""
+def window_cost_kernel(config, splat: bool, with_luminance: bool):
+    """B poses' windowed similarity in one launch, after their projection and tile sort: the image blend
+    (``blend.splat_image_func`` or ``blend.image_func``, its arguments first) into rgb [B, H, W, 3], alpha and
+    depth [B, H, W], the horizontal pass into hbuf [B, H, W, 3, 3], the vertical pass's per-row sums into rows
+    [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64 (sum of the per-pixel values, valid
+    pixels; a host array: no read-back launch)."""
+    blend = splat_image_func(config) if splat else image_func(config)
     vertical = _vertical_cost(with_luminance)
+    f32, i32 = ti.f32, ti.i32
 
     @ti.kernel
-    def window_cost(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), qstats: ti.types.ndarray(dtype=ti.f32, ndim=5),
-                    query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
-                    mask_alpha: ti.f32, num_poses: ti.i32, hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5),
-                    rows: ti.types.ndarray(dtype=ti.f32, ndim=4), out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+    def window_cost(packed: ti.types.ndarray(dtype=f32, ndim=3), tile_start: ti.types.ndarray(dtype=i32, ndim=2),
+                    isect: ti.types.ndarray(dtype=i32, ndim=1), isect_base: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                    background: ti.types.ndarray(dtype=f32, ndim=1), tiles_x: i32, tiles_y: i32, num_poses: i32,
+                    rgb: ti.types.ndarray(dtype=f32, ndim=4), alpha: ti.types.ndarray(dtype=f32, ndim=3),
+                    depth: ti.types.ndarray(dtype=f32, ndim=3), qstats: ti.types.ndarray(dtype=f32, ndim=5),
+                    query_index: ti.types.ndarray(dtype=i32, ndim=1), mask_alpha: f32,
+                    hbuf: ti.types.ndarray(dtype=f32, ndim=5), rows: ti.types.ndarray(dtype=f32, ndim=4),
+                    out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
+        blend(packed, tile_start, isect, isect_base, background, tiles_x, tiles_y, num_poses, rgb, alpha, depth)
         horizontal(rgb, qstats, query_index, num_poses, hbuf)
         vertical(hbuf, qstats, query_index, alpha, mask_alpha, num_poses, rows)
         reduce_rows(rows, num_poses, out)

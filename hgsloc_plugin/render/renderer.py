@@ -15,7 +15,7 @@ import taichi as ti
 from ..backend import current_arch
 from ..camera import Camera
 from ..kernels import RasterConfig, cull, window
-from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel, splat_image_kernel
+from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
 from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
@@ -55,10 +55,7 @@ class Renderer:
         if mode == "auto":
             mode = "pixel" if current_arch() == "cuda" else "splat"
         self.blend_mode = mode
-        if mode == "splat":
-            self._blend_img, self._blend_cost = splat_image_kernel(self.config), splat_cost_kernel(self.config)
-        else:
-            self._blend_img, self._blend_cost = image_kernel(self.config), cost_kernel(self.config)
+        self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
         self._reduce = reduce_kernel()
         self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks
 
@@ -206,21 +203,17 @@ class Renderer:
 
     # ---- images and costs ----
 
-    def _blend_images(self, camera: Camera, part: list[Pose], background, batch: int) -> Workspace:
-        """Geometry and image blending of up to one chunk of poses; the images stay on the device
-        (``ws.images``). ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
+    def _images_ready(self, camera: Camera, part: list[Pose], background, batch: int) -> tuple[Workspace, tuple]:
+        """Geometry of up to one chunk of poses, into a workspace whose image buffers exist (``ws.images``), and
+        the arguments an image blend starts with (``blend.image_func``'s, up to the number of poses).
+        ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
         ws = self._workspace(camera, batch)
         if ws.images is None:
             ws.images = ImageBuffers.allocate(ws.batch, camera.height, camera.width)
         self._geometry(camera, part, ws, background)
         tx, ty = ws.tiles
-        im = ws.images
-        head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
-        if self.blend_mode == "splat":
-            self._blend_img(*head, ty, len(part), im.rgb, im.alpha, im.dimg)
-        else:
-            self._blend_img(*head, len(part), im.rgb, im.alpha, im.dimg)
-        return ws
+        return ws, (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background,
+                    tx, ty, len(part))
 
     def visible(self, camera: Camera, poses: list[Pose]) -> np.ndarray:
         """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n], in the
@@ -236,7 +229,9 @@ class Renderer:
         """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""
         rgbs, alphas, depths = [], [], []
         for part in self._chunks(poses):
-            im = self._blend_images(camera, part, background, min(len(poses), self.chunk)).images
+            ws, head = self._images_ready(camera, part, background, min(len(poses), self.chunk))
+            im = ws.images
+            image_kernel(self.config, self.blend_mode == "splat")(*head, im.rgb, im.alpha, im.dimg)
             n = len(part)
             rgbs.append(read_rows(im.rgb, n))
             alphas.append(read_rows(im.alpha, n))
@@ -287,15 +282,13 @@ class Renderer:
         _check_query_size(qstats, camera)
         out = []
         for part, qi in self._query_parts(poses, query_index):
-            ws = self._blend_images(camera, part, background, min(len(poses), self.chunk))
+            ws, head = self._images_ready(camera, part, background, min(len(poses), self.chunk))
             im = ws.images
             if ws.window is None:
                 ws.window = WindowBuffers.allocate(ws.batch, camera.height, camera.width)
-            w = ws.window
-            n = len(part)
-            sums = np.empty((n, 2), np.float64)
-            window.window_cost_kernel(bool(luminance))(im.rgb, qstats, qi, im.alpha, float(mask_alpha), n, w.h,
-                                                       w.rows, sums)
+            sums = np.empty((len(part), 2), np.float64)
+            window.window_cost_kernel(self.config, self.blend_mode == "splat", bool(luminance))(
+                *head, im.rgb, im.alpha, im.dimg, qstats, qi, float(mask_alpha), ws.window.h, ws.window.rows, sums)
             out.append(sums)
         return np.concatenate(out)
 

@@ -254,6 +254,7 @@ class Pool:
     sort_scratch: SortScratch | None = None
     query_indices: dict[bytes, ti.Ndarray] = field(default_factory=dict)
     placeholder: ti.Ndarray | None = None
+    mask_placeholder: ti.Ndarray | None = None
 
     def query_index(self, index: np.ndarray) -> ti.Ndarray:
         """``index`` [B] (int32: each pose's query slot) on the device; the last few are kept, a lockstep batch
@@ -304,8 +305,13 @@ class Pool:
                 self.lists = TileLists(nd(ti.i32, (cap,)), cap)
         return self.lists
 
-    def pixel_masks(self) -> ti.Ndarray:
-        """One uint64 per entry of the current tile lists (``kernels.pose_grad.pixel_masks``)."""
+    def pixel_masks(self, used: bool = True) -> ti.Ndarray:
+        """One uint64 per entry of the current tile lists (``kernels.pose_grad.pixel_masks``); with ``used``
+        False, a one-entry placeholder for a derivative pass compiled without the masks."""
+        if not used:
+            if self.mask_placeholder is None:
+                self.mask_placeholder = ti.ndarray(ti.u64, (1,))
+            return self.mask_placeholder
         if self.lists.masks is None:
             self.lists.masks = ti.ndarray(ti.u64, (self.lists.capacity,))
         return self.lists.masks

@@ -44,7 +44,7 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     lists = r.pool.lists
     derivative_images_kernel(r.config, r.grad_masks)(
         gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
-        rec.packed, ws.tile_start, lists.isect, ws.isect_base, r.pool.pixel_masks(), ws.background, tx, ty,
+        rec.packed, ws.tile_start, lists.isect, ws.isect_base, r.pool.pixel_masks(r.grad_masks), ws.background, tx, ty,
         g.rgb, g.alpha, g.drgb)
     return g
 

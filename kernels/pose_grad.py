@@ -6,8 +6,8 @@ Pose increment ``xi = (w, v)`` [6] (rotation vector, then translation): a left p
 
 (the axes of the search's lattice, turning about the camera centre). ``hgsloc_plugin.pose_update`` applies it.
 
-Two kernels, run after the projection and tile sort of the same poses (they read its ``packed`` records,
-``ntiles`` and tile lists):
+Three steps, run in turn by one launch (:func:`derivative_images_kernel`) after the projection and tile sort of the
+same poses (they read its ``packed`` records, ``ntiles`` and tile lists):
 
 - ``projection_grad``: per pose and kept Gaussian, the derivatives of the 2D mean (mx, my) and the conic
   (a, b, c) along the six axes: ``dpacked [B, N, 5 * 6]`` (quantity-major, ``DX, DY, DCA, DCB, DCC``).
@@ -22,8 +22,8 @@ Two kernels, run after the projection and tile sort of the same poses (they read
   ``dalpha = -alpha dsigma`` (0 where alpha is capped at ``alpha_max``), ``dC += c (dalpha T + alpha dT)``,
   ``dT' = dT (1 - alpha) - T dalpha``; output ``drgb = dC + dT background`` [B, H, W, 3 * 6]. The alpha
   threshold and the early stop are discontinuities; their derivative is taken as 0.
-- ``pixel_masks`` (before ``blend_grad``, tiles of at most 8 x 8 pixels): per tile-list entry, a 64-bit mask of the
-  tile's pixels its Gaussian may reach. A pixel walks its tile's whole list, most of whose Gaussians miss it
+- ``pixel_masks`` (between the two, where used; tiles of at most 8 x 8 pixels): per tile-list entry, a 64-bit
+  mask of the tile's pixels its Gaussian may reach. A pixel walks its tile's whole list, most of whose Gaussians miss it
   (snow, 99 px: 426 entries walked per pixel, 45 contributing); with the mask it skips them on one bit test
   instead of loading and evaluating the record. The mask is a superset of the pixels the exact test keeps, so
   every number is unchanged (``tests/test_pose_grad.py``).

@@ -253,8 +253,7 @@ class Pool:
     lists: TileLists | None = None
     sort_scratch: SortScratch | None = None
     query_indices: dict[bytes, ti.Ndarray] = field(default_factory=dict)
-    placeholder: ti.Ndarray | None = None
-    mask_placeholder: ti.Ndarray | None = None
+    placeholders: dict[str, ti.Ndarray] = field(default_factory=dict)
 
     def query_index(self, index: np.ndarray) -> ti.Ndarray:
         """``index`` [B] (int32: each pose's query slot) on the device; the last few are kept, a lockstep batch
@@ -305,23 +304,20 @@ class Pool:
                 self.lists = TileLists(nd(ti.i32, (cap,)), cap)
         return self.lists
 
-    def pixel_masks(self, used: bool = True) -> ti.Ndarray:
-        """One uint64 per entry of the current tile lists (``kernels.pose_grad.pixel_masks``); with ``used``
-        False, a one-entry placeholder for a derivative pass compiled without the masks."""
-        if not used:
-            if self.mask_placeholder is None:
-                self.mask_placeholder = ti.ndarray(ti.u64, (1,))
-            return self.mask_placeholder
+    def pixel_masks(self) -> ti.Ndarray:
+        """One uint64 per entry of the current tile lists (``kernels.pose_grad.pixel_masks``)."""
         if self.lists.masks is None:
             self.lists.masks = ti.ndarray(ti.u64, (self.lists.capacity,))
         return self.lists.masks
 
-    def no_totals(self) -> ti.Ndarray:
-        """A device placeholder for the projection's ``totals`` where it does not count (the parallel sort): a host
-        array there would be copied to and from the device at each launch."""
-        if self.placeholder is None:
-            self.placeholder = ti.ndarray(ti.i64, (1,))
-        return self.placeholder
+    def placeholder(self, dtype) -> ti.Ndarray:
+        """A one-entry device array of ``dtype`` for a kernel argument the launch does not read (the projection's
+        ``totals`` under the parallel sort, the masks of a derivative pass without them): a host array there
+        would be copied to and from the device at each launch, a full buffer would waste its memory."""
+        key = str(dtype)
+        if key not in self.placeholders:
+            self.placeholders[key] = ti.ndarray(dtype, (1,))
+        return self.placeholders[key]
 
     def radix_scratch(self) -> SortScratch:
         if self.sort_scratch is None:

@@ -8,6 +8,7 @@ kernels are ``kernels/pose_grad.py`` (per-Gaussian derivative records, derivativ
 from __future__ import annotations
 
 import numpy as np
+import taichi as ti
 
 from ..camera import Camera
 from ..costs import cost_from_window
@@ -41,11 +42,11 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     # one task per pixel on every backend (a tile-parallel twin was slower on the CPU: benchmarks/defaults.md),
     # each skipping the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
     tx, ty = ws.tiles
-    lists = r.pool.lists
+    masks = r.pool.pixel_masks() if r.grad_masks else r.pool.placeholder(ti.u64)
     derivative_images_kernel(r.config, r.grad_masks)(
         gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
-        rec.packed, ws.tile_start, lists.isect, ws.isect_base, r.pool.pixel_masks(r.grad_masks), ws.background, tx, ty,
-        g.rgb, g.alpha, g.drgb)
+        rec.packed, ws.tile_start, r.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb, g.alpha,
+        g.drgb)
     return g
 
 

@@ -186,7 +186,7 @@ class Renderer:
         tx, ty = ws.tiles
         parallel = self.sort_mode == "parallel"
         # the serial sort's totals: counted by the projection into a host array, back with its launch
-        totals = self.pool.no_totals() if parallel else np.zeros(B, np.int64)
+        totals = self.pool.placeholder(ti.i64) if parallel else np.zeros(B, np.int64)
         self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
                       camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed, totals)
         if parallel:

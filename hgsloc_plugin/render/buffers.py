@@ -116,10 +116,10 @@ class WindowBuffers:
 
 @dataclass
 class StatBuffers:
-    """The fused pixel cost's scratch: per-run statistics [B, rows, tx, Stat.SIZE] and totals [B, Stat.SIZE]."""
+    """The fused pixel cost's scratch: per-run statistics [B, rows, tx, Stat.SIZE] (the totals per pose go straight
+    to a host array)."""
 
     runs: ti.Ndarray
-    stats: ti.Ndarray
 
 
 @dataclass

@@ -309,16 +309,16 @@ class Renderer:
             tx, ty = ws.tiles
             if ws.stats is None:
                 rows = ty if self.blend_mode == "splat" else camera.height
-                ws.stats = StatBuffers(ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE)),
-                                       ti.ndarray(ti.f64, (ws.batch, Stat.SIZE)))
+                ws.stats = StatBuffers(ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE)))
             self._geometry(camera, part, ws, background)
             head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
             if self.blend_mode == "splat":
                 self._blend_cost(*head, ty, len(part), target, float(mask_alpha), ws.stats.runs)
             else:
                 self._blend_cost(*head, len(part), target, float(mask_alpha), ws.stats.runs)
-            self._reduce(ws.stats.runs, len(part), ws.stats.stats)
-            out.append(read_rows(ws.stats.stats, len(part)))
+            stats = np.empty((len(part), Stat.SIZE), np.float64)  # a host array: back with the launch
+            self._reduce(ws.stats.runs, len(part), stats)
+            out.append(stats)
         return np.concatenate(out)
 
     # ---- pose derivatives (``render/derivatives.py``) ----

@@ -4,12 +4,19 @@ Each case refines a few queries from seeded priors and records every field of th
 verdicts, render counts; wall time excluded). ``tests/test_digest.py`` compares a fresh run with the record in
 ``tests/data/digests.json``; after a deliberate change of behaviour, regenerate it with
 ``python -m tests.digest_cases --write``.
+
+The last bits of the floats depend on the machine as well as the code: Taichi compiles the kernels for the host
+CPU's vector extensions and numpy's BLAS picks its routines by them, and a borderline verdict can follow (the same
+code gave different last digits, one flipped verdict and one pass less on an AVX-512 machine than on the one the
+earlier record was made on). So the record names the machine it was made on (:func:`machine`), and the test
+compares only on a machine of the same signature.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import platform
 import sys
 from pathlib import Path
 
@@ -17,6 +24,30 @@ import numpy as np
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RECORD = Path(__file__).resolve().parent / "data" / "digests.json"
+MACHINE_KEY = "_machine"  # the record's entry naming the machine it was made on
+#: CPU flags that change the arithmetic the kernels and numpy's BLAS are compiled or dispatched to
+VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_bf16", "neon",
+                "asimd", "sve")
+
+
+def machine() -> str:
+    """The signature of what the float results depend on besides the code: architecture, CPU model, vector
+    extensions, numpy and Taichi versions (e.g. ``x86_64 | AMD EPYC | avx,avx2,... | numpy 2.4.6 | taichi 1.7.4``)."""
+    import taichi
+
+    model, flags = platform.processor() or "?", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model in ("?", platform.machine()):
+                model = value.strip()
+            elif key.strip() in ("flags", "Features") and not flags:
+                flags = set(value.split())
+    except OSError:  # not Linux: the model and version parts only
+        pass
+    vector = ",".join(f for f in VECTOR_FLAGS if f in flags) or "?"
+    return (f"{platform.machine()} | {model} | {vector} | numpy {np.__version__} | "
+            f"taichi {'.'.join(map(str, taichi.__version__))}")
 
 
 def _camera(d: Path):
@@ -156,6 +187,14 @@ def run_case(name: str) -> dict:
 def main(argv: list[str]) -> int:
     names = [a for a in argv if not a.startswith("--")] or list(CASES)
     record = json.loads(RECORD.read_text()) if RECORD.exists() else {}
+    here = machine()
+    if record.get(MACHINE_KEY, here) != here:
+        print(f"the record was made on another machine ({record[MACHINE_KEY]}; this one: {here}): its floats may "
+              "differ in the last bits", file=sys.stderr)
+        if "--write" in argv and set(names) != set(CASES):
+            print("write every case on this machine (no case names)", file=sys.stderr)
+            return 2
+    record[MACHINE_KEY] = here
     changed = 0
     for name in names:
         rec = run_case(name)

@@ -229,10 +229,13 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
     """Diagonal case by hand: the prior 1 rad-equivalent off along one rotation axis and 1 unit along one shift
     axis, the refinement's variance there a, the prior's s^2 = (PRIOR_SPREAD * error)^2: the fused offset is
     xp * a / (a + s^2) per axis and the posterior variance a s^2 / (a + s^2). A refinement with an unbounded
-    covariance (singular Hessian) leaves the prior of known error, "prior more precise"."""
+    covariance (singular Hessian) leaves the prior of known error, "prior more precise"; a bounded one is fused,
+    the fusion scored in the rule's one batch with the coarse pose and the candidate."""
     from types import SimpleNamespace
 
-    from hgsloc_plugin.refine.trust import PRIOR_SPREAD, _fuse, fuse_with_prior
+    from hgsloc_plugin.refine.polish import PolishStats
+    from hgsloc_plugin.refine.routes import Candidate
+    from hgsloc_plugin.refine.trust import PRIOR_MORE_PRECISE, PRIOR_SPREAD, fuse_with_prior, judge
 
     pose = hp.Pose.identity()
     prior = pose.perturbed_in_camera([0.0, 0.02, 0.0], [0.0, 0.0, 0.05])
@@ -245,5 +248,20 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
     np.testing.assert_allclose(np.diag(post), a * s2 / (a + s2), rtol=1e-9)
     np.testing.assert_allclose(post - np.diag(np.diag(post)), 0.0, atol=1e-15)
     plan = SimpleNamespace(coarse_pose=prior, prior_error=err_t, prior_error_deg=err_deg)
-    out = _fuse(pose, (np.full((6, 6), math.inf), math.inf, math.inf), plan, None, 1.0, "q")
-    assert out[2] is None  # no fusion: the judge keeps the prior as "prior more precise"
+    batches = []
+
+    def scorer(poses):  # the coarse pose costs 1, anything else 0.5
+        batches.append(poses)
+        return np.array([1.0 if p is prior else 0.5 for p in poses])
+
+    def judged(jtj):
+        stats = PolishStats(8, 8, 1.0, 0.5, 1, 1, 0, 0.1, "converged", jtj)
+        cand = Candidate("gradient", pose, math.nan, math.nan, prior, polish=[stats])
+        return judge(cand, plan, scorer, None, rule="cost", lattice=False, structural=True, pivot=True), cand
+
+    verdict, cand = judged(np.zeros((6, 6)))  # singular: no fusion, the prior is kept
+    assert verdict.rejected == PRIOR_MORE_PRECISE and verdict.pose is prior and not verdict.fused
+    assert (cand.cost_initial, cand.cost) == (1.0, 0.5) and len(batches[-1]) == 2
+    verdict, _ = judged(np.diag(1.0 / a))  # a bounded covariance
+    assert verdict.accepted and verdict.fused and len(batches[-1]) == 3  # coarse, candidate, fusion: one batch
+    assert verdict.pose is batches[-1][2] and verdict.cost == 0.5

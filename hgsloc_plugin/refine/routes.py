@@ -47,8 +47,9 @@ class QueryContext:
 
 @dataclass
 class Candidate:
-    """A route's result: its pose and cost at ``judge_cam``, the coarse pose's cost there, the search's pose after
-    its pyramid levels (the coarse pose when no search ran), and the route's effort."""
+    """A route's result: its pose, its cost and the coarse pose's cost (at ``judge_cam`` once judged: the rule,
+    ``trust.judge``, scores both with its own poses in one batch; before, the search's running costs), the search's
+    pose after its pyramid levels (the coarse pose when no search ran), and the route's effort."""
 
     route: str
     pose: Pose
@@ -73,9 +74,8 @@ def search_route(ctx: QueryContext) -> Candidate:
 
 def _route(ctx: QueryContext, search: bool) -> Candidate:
     cfg, plan, scorer, coarse = ctx.config, ctx.plan, ctx.scorer, ctx.plan.coarse_pose
-    judge_cam = ctx.judge_cam
-    cost_initial = math.nan  # scored below: at the final size before the search, or at judge_cam after the polish
-    if search or judge_cam == plan.cam_final:  # the coarse cost at the scoring size: the search's start
+    cost_initial = math.nan
+    if search:  # the search starts from the coarse pose's cost at the final size
         scorer.set_query(plan.cam_final, ctx.image, renderer=ctx.renderer)
         cost_initial = float(scorer([coarse])[0])
     cand = Candidate("search" if search else "gradient", coarse, cost_initial, cost_initial, coarse)
@@ -84,11 +84,16 @@ def _route(ctx: QueryContext, search: bool) -> Candidate:
     if cfg.polishes:
         cams = [plan.cam_polish] if search else [plan.cam_coarse, plan.cam_final, plan.cam_polish]
         cand.pose = _polish(ctx, cand, cams, near=search)
-        if judge_cam != plan.cam_final:
-            scorer.set_query(judge_cam, ctx.image, renderer=ctx.renderer)
-            cand.cost_initial = float(scorer([coarse])[0])
-        cand.cost = float(scorer([cand.pose])[0])
+    _score_at_judge_size(ctx)
     return cand
+
+
+def _score_at_judge_size(ctx: QueryContext) -> None:
+    """Leave the scorer at ``judge_cam`` on the query's renderer, where the rule scores the candidate (its costs
+    so far, at that size and renderer, stay cached)."""
+    scorer = ctx.scorer
+    if scorer.camera != ctx.judge_cam or scorer.renderer is not ctx.renderer:
+        scorer.set_query(ctx.judge_cam, ctx.image, renderer=ctx.renderer)
 
 
 def wide_search_route(ctx: QueryContext) -> Candidate:
@@ -110,8 +115,7 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     cand.pose = cand.after_coarse = best_pose
     cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
     cand.pose = _polish(ctx, cand, cams, near=False)
-    scorer.set_query(ctx.judge_cam, ctx.image, renderer=ctx.renderer)
-    cand.cost_initial, cand.cost = (float(c) for c in scorer([coarse, cand.pose]))
+    _score_at_judge_size(ctx)
     return cand
 
 

@@ -217,22 +217,37 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
           pivot: bool, name: str | None = None) -> Verdict:
     """Apply the acceptance rule (``rule`` "trust", on the lattice; else "cost": any lower cost) to ``cand``, then
     fuse an accepted polished pose with a prior of known error. ``scorer`` scores at ``cam``, the judging size;
-    ``structural``: the cost's level is comparable across images (the alignment test applies)."""
+    ``structural``: the cost's level is comparable across images (the alignment test applies).
+
+    Everything the rule may need is scored in one batch: the coarse pose and the candidate (their costs are set on
+    ``cand``), the 12 one-pixel moves, and the fusion with the prior (scored before the verdict; used only when
+    the candidate is accepted)."""
     coarse = plan.coarse_pose
+    trust = rule == "trust" and lattice
+    moves = _moves(cand.pose, plan, cam, pivot) if trust else []
+    uncertainty = pose_uncertainty(cand.polish[-1].jtj, cand.polish[-1].cost) if cand.polish else None
+    fusion = None  # (fused pose, its covariance) when a prior of known error applies
+    if uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None) \
+            and np.all(np.isfinite(uncertainty[0])):
+        fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
+    costs = scorer([coarse, cand.pose, *moves] + ([fusion[0]] if fusion is not None else []))
+    cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
     rejected, assessment, confidence = None, None, 0.0
-    if rule == "trust" and lattice:
-        assessment = _assess(cand, plan, scorer, cam, pivot, structural)
+    if trust:
+        assessment = _assess(cand, plan, costs[2:2 + len(moves)] - cand.cost, structural)
         rejected, confidence = assessment.rejected, assessment.confidence
     elif not cand.cost < cand.cost_initial:
         rejected = "no improvement"
-    pose, cost, uncertainty, fused = cand.pose, cand.cost, None, False
-    if rejected is None and cand.polish:  # the last stage's Hessian is at the candidate
-        last = cand.polish[-1]
-        uncertainty = pose_uncertainty(last.jtj, last.cost)
-        if plan.prior_error is not None or plan.prior_error_deg is not None:
-            pose, cost, uncertainty = _fuse(pose, uncertainty, plan, scorer, cand.cost_initial, name)
-            fused = uncertainty is not None
-            rejected = None if fused else PRIOR_MORE_PRECISE
+    pose, cost, fused = cand.pose, cand.cost, False
+    if rejected is None and cand.polish and (plan.prior_error is not None or plan.prior_error_deg is not None):
+        fused = fusion is not None and float(costs[-1]) < cand.cost_initial
+        logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
+                     plan.prior_error, plan.prior_error_deg, float(costs[-1]) if fusion is not None else math.nan,
+                     cand.cost_initial)
+        if fused:
+            pose, cost, uncertainty = fusion[0], float(costs[-1]), (fusion[1], *sigmas(fusion[1]))
+        else:  # the fusion is no better than the prior, or the refined pose's uncertainty is unbounded
+            rejected = PRIOR_MORE_PRECISE
     if rejected is not None:
         logger.debug("query %s: %s pose rejected (%s): %s", name, cand.route, rejected,
                      assessment.to_dict() if assessment else {})
@@ -243,32 +258,20 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     return out
 
 
-def _assess(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, pivot: bool, structural: bool) -> Assessment:
-    """Score the 12 one-pixel moves around the candidate at ``cam``'s size and apply :func:`assess`."""
+def _moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
+    """The 12 lattice moves of one pixel of image motion at ``cam``'s size around ``best``."""
     from .search import LatticeSpace
 
-    best = cand.pose
     f = 0.5 * (cam.fx + cam.fy)
     space = LatticeSpace(best, 1.0 / f, plan.depth / f, plan.depth if pivot else 0.0)
-    rises = scorer([space.pose(k) for k in space.neighbours((0,) * 6)]) - cand.cost
+    return [space.pose(k) for k in space.neighbours((0,) * 6)]
+
+
+def _assess(cand: Candidate, plan: Plan, rises: np.ndarray, structural: bool) -> Assessment:
+    """:func:`assess` of the candidate from the rises [12] of its one-pixel moves."""
+    best = cand.pose
     step_r, step_t = plan.levels[0]
     after = cand.after_coarse
     level_shift = max(float(np.linalg.norm(after.centre() - best.centre())) / max(step_t, 1e-12),
                       rotation_angle_deg(after.R, best.R) / max(step_r, 1e-12))
     return assess(cand.cost_initial, cand.cost, rises, plan.travel(best), level_shift, check_alignment=structural)
-
-
-def _fuse(pose: Pose, uncertainty: tuple, plan: Plan, scorer: Scorer, cost_initial: float, name: str | None):
-    """The accepted ``pose`` fused with the prior of known error: (pose, its cost, (covariance, sigma_t,
-    sigma_r_deg)), or (pose, nan, None) when the fusion's cost is not below the coarse pose's or the refined
-    pose's uncertainty is unbounded (the prior is then the more precise)."""
-    cov = uncertainty[0]
-    if not np.all(np.isfinite(cov)):
-        return pose, math.nan, None
-    fused, post = fuse_with_prior(pose, cov, plan.coarse_pose, plan.prior_error, plan.prior_error_deg)
-    cost = float(scorer([fused])[0])
-    logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
-                 plan.prior_error, plan.prior_error_deg, cost, cost_initial)
-    if not cost < cost_initial:
-        return pose, math.nan, None
-    return fused, cost, (post, *sigmas(post))

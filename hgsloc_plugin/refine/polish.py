@@ -9,7 +9,9 @@ failed one's (a retry barely shorter fails again: near convergence ``lambda`` is
 nothing). It stops on a step below ``min_step_px`` of image motion (times the multiple the line search last
 needed) or a kept step that lowers the cost by less than ``MIN_DECREASE`` of it, after ``max_failures`` rejected
 trials in a row, or after ``iterations`` passes. A trial outside the trust region is not rendered: the damping
-grows until the step fits (or the polish stops, "trust region").
+grows until the step fits (or the polish stops, "trust region"). A step whose line search already shows a
+decrease under ``MIN_DECREASE`` is taken without its derivative pass (nothing would follow it): the polish ends
+there, with the Hessian of the pose before it.
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
@@ -60,7 +62,8 @@ class PolishStats:
         accepted_steps: trials that lowered the cost.
         step_px: image motion of the last accepted step (pixels at the polish size; 0 if none).
         stopped: "converged" (step below the threshold), "no decrease", "iterations", "trust region".
-        jtj: Gauss-Newton Hessian [6, 6] of the cost at the returned pose, in ``xi = (w [rad], v [scene units])``.
+        jtj: Gauss-Newton Hessian [6, 6] of the cost, in ``xi = (w [rad], v [scene units])``, at the returned pose
+            or, when the last step was taken on its line-search cost alone, at the pose one negligible step before.
     """
 
     width: int
@@ -171,6 +174,12 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             reach = m
             xi = m * xi
             motion = step_pixels(xi, f, depth)
+            if cost - lc[j] < MIN_DECREASE * cost:  # negligible: the polish ends here, no derivative pass needed
+                pose, cost = trial, float(lc[j])
+                stats.accepted_steps += 1
+                stats.step_px = motion
+                stats.stopped = "converged"
+                break
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:

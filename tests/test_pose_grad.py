@@ -376,6 +376,40 @@ def test_line_search_extends_past_the_longest_multiple(monkeypatch):
     assert np.linalg.norm(pose_r.centre() - c0) <= 0.01
 
 
+def test_a_negligible_step_ends_the_polish_without_its_derivative_pass():
+    """The line search scores a step's cost before its derivative pass; when the decrease is under the stage's
+    ``Convergence.decrease`` the step is taken on that cost and the stage ends, with no pass at the returned pose.
+    A stage before a finer one (``STAGE``: 1 % of the cost) ends sooner than the last (``FINAL``: 1e-4)."""
+    from hgsloc_plugin.refine.polish import FINAL, STAGE
+
+    class Flat(_QuadraticCost):  # the quadratic on a level of 1: decreases are small fractions of the cost
+        def __init__(self, target):
+            super().__init__(target, 1.3)
+            self.passes = []
+
+        def cost(self, T):
+            return 0.95 + super().cost(T)
+
+        def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.passes.append(poses[0])
+            return super().pose_gradient(camera, poses, qstats, background, mask_alpha)
+
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    runs = {}
+    for conv in (FINAL, STAGE):
+        fake = Flat(target)
+        pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, converged=conv)
+        last = fake.passes[-1]
+        assert st.stopped == "converged" and st.passes == len(fake.passes)
+        assert all(pose is not p for p in fake.passes)  # the last step carried no pass
+        assert st.cost == pytest.approx(fake.cost(pose)) and st.cost < fake.cost(last)
+        assert fake.cost(last) - st.cost < conv.decrease * fake.cost(last)
+        runs[conv] = (pose, st)
+    assert runs[STAGE][1].passes < runs[FINAL][1].passes
+    assert runs[FINAL][0].errors_to(target)[0] < 2e-3
+
 def test_a_retry_after_a_failed_trial_is_materially_shorter():
     """A gradient that points uphill makes every trial fail. Each retry is damped until its image motion is at most
     RETRY_SHRINK of the failed one's (ten times a tiny damping would repeat the same trial), and the polish

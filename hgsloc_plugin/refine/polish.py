@@ -6,12 +6,12 @@ diag(JtJ)) xi = -g`` (Marquardt's scaling: rotation and translation need no comm
 its cost is lower than the current pose's (keep-best), after which ``lambda`` shrinks; otherwise ``lambda`` grows
 and the step is re-solved from the same system, damped until its image motion is at most ``RETRY_SHRINK`` of the
 failed one's (a retry barely shorter fails again: near convergence ``lambda`` is tiny and ten times it changes
-nothing). It stops on a step below ``min_step_px`` of image motion (times the multiple the line search last
-needed) or a kept step that lowers the cost by less than ``min_decrease`` of it, after ``max_failures`` rejected
-trials in a row, or after ``iterations`` passes. A trial outside the trust region is not rendered: the damping
-grows until the step fits (or the polish stops, "trust region"). A step whose line search already shows a
-decrease under ``min_decrease`` is taken without its derivative pass (nothing would follow it): the polish ends
-there, with the Hessian of the pose before it.
+nothing). It stops when it has converged (``Convergence``: a step below ``step_px`` of image motion, times the
+multiple the line search last needed, or a kept step that lowers the cost by less than ``decrease`` of it), after
+``max_failures`` rejected trials in a row, or after ``iterations`` passes. A trial outside the trust region is not
+rendered: the damping grows until the step fits (or the polish stops, "trust region"). A step whose line search
+already shows a decrease under ``decrease`` is taken without its derivative pass (nothing would follow it): the
+polish ends there, with the Hessian of the pose before it.
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
@@ -49,6 +49,19 @@ MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size)
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
 STAGE_STEP_PX = 0.25
 STAGE_DECREASE = 1e-2  # MIN_DECREASE for such a stage (its steps 25x longer, their decreases ~600x larger)
+
+
+@dataclass(frozen=True)
+class Convergence:
+    """When a polish stage has converged: a step under ``step_px`` of image motion (pixels at its size, times the
+    multiple the line search last needed), or a kept step lowering the cost by less than ``decrease`` of it."""
+
+    step_px: float
+    decrease: float
+
+
+FINAL = Convergence(MIN_STEP_PX, MIN_DECREASE)  # the last stage
+STAGE = Convergence(STAGE_STEP_PX, STAGE_DECREASE)  # a stage followed by a finer one
 
 
 @dataclass
@@ -91,7 +104,7 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
 
 def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-           min_step_px: float = MIN_STEP_PX, min_decrease: float = MIN_DECREASE, max_failures: int = 3,
+           converged: Convergence = FINAL, max_failures: int = 3,
            line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:
     """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
 
@@ -99,7 +112,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         depth: the scene's median depth in front of the camera (scales translations into pixels).
         iterations: derivative passes at most (the first, at ``pose``, included).
         allowed: the trust-region test.
-        min_step_px / min_decrease: the convergence thresholds (image motion at this size; fraction of the cost).
+        converged: the thresholds (``FINAL``; ``STAGE`` for a stage followed by a finer one).
         line_search: multiples of each step scored with the cost alone (``()``: none, every trial is a pass).
 
     Returns:
@@ -134,7 +147,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             stats.stopped = "no decrease"
             break
         motion = step_pixels(xi, f, depth)
-        if motion * reach < min_step_px:  # reach: the multiple the last kept step needed (GN steps run short)
+        if motion * reach < converged.step_px:  # reach: the multiple the last kept step needed (GN steps run short)
             stats.stopped = "converged"
             break
         if motion > retry_limit:  # a retry barely shorter than the failed trial would fail again: more damping
@@ -176,7 +189,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             reach = m
             xi = m * xi
             motion = step_pixels(xi, f, depth)
-            if cost - lc[j] < min_decrease * cost:  # negligible: the polish ends here, no derivative pass needed
+            if cost - lc[j] < converged.decrease * cost:  # negligible: the polish ends here, no derivative pass needed
                 pose, cost = trial, float(lc[j])
                 stats.accepted_steps += 1
                 stats.step_px = motion
@@ -185,7 +198,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
-            negligible = cost - c2 < min_decrease * cost
+            negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.accepted_steps += 1
             stats.step_px = motion

@@ -21,16 +21,7 @@ from ..render import RendererLike
 from ..working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan
-from .polish import (
-    FINE_LINE_SEARCH,
-    LINE_SEARCH,
-    MIN_DECREASE,
-    MIN_STEP_PX,
-    STAGE_DECREASE,
-    STAGE_STEP_PX,
-    PolishStats,
-    polish,
-)
+from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 
@@ -193,8 +184,7 @@ def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) 
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
         pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
                              allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,
-                             min_step_px=MIN_STEP_PX if last else STAGE_STEP_PX,
-                             min_decrease=MIN_DECREASE if last else STAGE_DECREASE,
+                             converged=FINAL if last else STAGE,
                              line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
         cand.polish.append(stats)
     return pose

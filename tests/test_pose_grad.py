@@ -378,9 +378,9 @@ def test_line_search_extends_past_the_longest_multiple(monkeypatch):
 
 def test_a_negligible_step_ends_the_polish_without_its_derivative_pass():
     """The line search scores a step's cost before its derivative pass; when the decrease is under the stage's
-    ``Convergence.decrease`` the step is taken on that cost and the stage ends, with no pass at the returned pose.
-    A stage before a finer one (``STAGE``: 1 % of the cost) ends sooner than the last (``FINAL``: 1e-4)."""
-    from hgsloc_plugin.refine.polish import FINAL, STAGE
+    ``Convergence.decrease`` the step is taken on that cost and the stage ends, with no pass at the returned pose;
+    a larger ``decrease`` ends it sooner."""
+    from hgsloc_plugin.refine.polish import FINAL, Convergence
 
     class Flat(_QuadraticCost):  # the quadratic on a level of 1: decreases are small fractions of the cost
         def __init__(self, target):
@@ -398,7 +398,8 @@ def test_a_negligible_step_ends_the_polish_without_its_derivative_pass():
     start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
     cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
     runs = {}
-    for conv in (FINAL, STAGE):
+    coarse = Convergence(FINAL.step_px, 1e-2)
+    for conv in (FINAL, coarse):
         fake = Flat(target)
         pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, converged=conv)
         last = fake.passes[-1]
@@ -407,7 +408,7 @@ def test_a_negligible_step_ends_the_polish_without_its_derivative_pass():
         assert st.cost == pytest.approx(fake.cost(pose)) and st.cost < fake.cost(last)
         assert fake.cost(last) - st.cost < conv.decrease * fake.cost(last)
         runs[conv] = (pose, st)
-    assert runs[STAGE][1].passes < runs[FINAL][1].passes
+    assert runs[coarse][1].passes < runs[FINAL][1].passes
     assert runs[FINAL][0].errors_to(target)[0] < 2e-3
 
 def test_a_retry_after_a_failed_trial_is_materially_shorter():

@@ -226,9 +226,9 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     trust = rule == "trust" and lattice
     moves = _moves(cand.pose, plan, cam, pivot) if trust else []
     uncertainty = pose_uncertainty(cand.polish[-1].jtj, cand.polish[-1].cost) if cand.polish else None
-    fusion = None  # (fused pose, its covariance) when a prior of known error applies
-    if uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None) \
-            and np.all(np.isfinite(uncertainty[0])):
+    fuses = uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None)
+    fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
+    if fuses and np.all(np.isfinite(uncertainty[0])):
         fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
     costs = scorer([coarse, cand.pose, *moves] + ([fusion[0]] if fusion is not None else []))
     cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
@@ -239,7 +239,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     elif not cand.cost < cand.cost_initial:
         rejected = "no improvement"
     pose, cost, fused = cand.pose, cand.cost, False
-    if rejected is None and cand.polish and (plan.prior_error is not None or plan.prior_error_deg is not None):
+    if rejected is None and fuses:
         fused = fusion is not None and float(costs[-1]) < cand.cost_initial
         logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
                      plan.prior_error, plan.prior_error_deg, float(costs[-1]) if fusion is not None else math.nan,

@@ -84,11 +84,11 @@ def _route(ctx: QueryContext, search: bool) -> Candidate:
     if cfg.polishes:
         cams = [plan.cam_polish] if search else [plan.cam_coarse, plan.cam_final, plan.cam_polish]
         cand.pose = _polish(ctx, cand, cams, near=search)
-    _score_at_judge_size(ctx)
+    _scorer_to_judge_size(ctx)
     return cand
 
 
-def _score_at_judge_size(ctx: QueryContext) -> None:
+def _scorer_to_judge_size(ctx: QueryContext) -> None:
     """Leave the scorer at ``judge_cam`` on the query's renderer, where the rule scores the candidate (its costs
     so far, at that size and renderer, stay cached)."""
     scorer = ctx.scorer
@@ -115,7 +115,7 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     cand.pose = cand.after_coarse = best_pose
     cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
     cand.pose = _polish(ctx, cand, cams, near=False)
-    _score_at_judge_size(ctx)
+    _scorer_to_judge_size(ctx)
     return cand
 
 

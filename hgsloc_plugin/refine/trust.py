@@ -232,6 +232,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
         fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
     costs = scorer([coarse, cand.pose, *moves] + ([fusion[0]] if fusion is not None else []))
     cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
+    fused_cost = float(costs[-1]) if fusion is not None else math.nan
     rejected, assessment, confidence = None, None, 0.0
     if trust:
         assessment = _assess(cand, plan, costs[2:2 + len(moves)] - cand.cost, structural)
@@ -240,12 +241,11 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
         rejected = "no improvement"
     pose, cost, fused = cand.pose, cand.cost, False
     if rejected is None and fuses:
-        fused = fusion is not None and float(costs[-1]) < cand.cost_initial
+        fused = fused_cost < cand.cost_initial  # nan (no fusion) is not
         logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
-                     plan.prior_error, plan.prior_error_deg, float(costs[-1]) if fusion is not None else math.nan,
-                     cand.cost_initial)
+                     plan.prior_error, plan.prior_error_deg, fused_cost, cand.cost_initial)
         if fused:
-            pose, cost, uncertainty = fusion[0], float(costs[-1]), (fusion[1], *sigmas(fusion[1]))
+            pose, cost, uncertainty = fusion[0], fused_cost, (fusion[1], *sigmas(fusion[1]))
         else:  # the fusion is no better than the prior, or the refined pose's uncertainty is unbounded
             rejected = PRIOR_MORE_PRECISE
     if rejected is not None:

@@ -14,8 +14,11 @@ that fell out of step meet again at a common call. So:
   query at a time, whatever the batch size or the order in which queries finish.
 
 A query that finishes leaves the batch and the next one takes its place; at most ``batch_size`` are live.
-Working sets (maps of ``RefineConfig.working_set_min`` Gaussians or more) are per query, so there each query's
-calls go alone: the same poses, no shared launches.
+On maps of ``RefineConfig.working_set_min`` Gaussians or more each query renders from its own working set (a
+subset of the map); the calls of one group then render from the union of their subsets
+(``Renderer.covering``: every pose's image is the whole map's, bit for bit) when it holds at most
+``union_limit`` times the largest subset's Gaussians, else the calls of the group's most common subset go
+together and the others wait.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ import numpy as np
 
 from .render.renderer import Renderer
 
+#: default ``Lockstep.union_limit``
+UNION_LIMIT = 2.0
 #: the batched calls, and how each one's keyword values are read from its arguments
 _BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
 
@@ -58,17 +63,25 @@ class Lockstep:
 
     Args:
         batch_size: live queries at most (the memory bound: a launch holds up to this many queries' poses).
+        union_limit: how much larger than the largest working set of a group the union its launch renders from
+            may be (``UNION_LIMIT``; 1: only calls on one working set share a launch).
     """
 
-    def __init__(self, batch_size: int):
+    def __init__(self, batch_size: int, union_limit: float = None):
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+        union_limit = UNION_LIMIT if union_limit is None else float(union_limit)
+        if not union_limit >= 1.0:
+            raise ValueError(f"union_limit must be >= 1, got {union_limit!r}")
         self.batch_size = int(batch_size)
+        self.union_limit = union_limit
+        self._unions: dict[tuple, tuple[list, Renderer]] = {}
         self._cond = threading.Condition()
         self._cancelled = False
         self._stacks: dict[tuple, tuple[list, object]] = {}
         self.launches = 0  # device calls served (a batched launch counts once)
         self.requests = 0  # device calls the queries made
+        self.union_launches = 0  # launches rendered from the union of several working sets
 
     def run(self, jobs: Iterable[tuple[object, Callable[[DeviceProxy], object]]]) -> Iterator[tuple[object, object]]:
         """(key, result) of each job as it finishes; a job is ``(key, fn)`` and ``fn(proxy_factory)`` runs in a
@@ -168,9 +181,9 @@ class Lockstep:
                 s.reply = _invoke(*s.request)
             served = singles
         else:
-            served = max(groups.values(), key=len)  # max keeps the first of equal lengths
+            served, target = self._together(max(groups.values(), key=len))  # max: the first of equal lengths
             if len(served) > 1:
-                self._launch(served)
+                self._launch(served, target)
             else:
                 served[0].reply = _invoke(*served[0].request)
         self.requests += len(served)
@@ -179,15 +192,48 @@ class Lockstep:
             s.request = s.key = s.arguments = None
             s.resume.set()
 
-    def _launch(self, group: list[_Slot]) -> None:
-        """One launch for the calls of ``group`` (same renderer, method, camera and settings)."""
-        target, name, _, _ = group[0].request
+    def _together(self, group: list[_Slot]) -> tuple[list[_Slot], Renderer]:
+        """The calls of ``group`` (one map, method, camera and settings) that go into one launch, and the renderer
+        it renders from: all of them and their renderers' union when that is within ``union_limit``, else those
+        of the most common renderer (the first met on a tie) and that renderer."""
+        targets = {id(s.request[0]): s.request[0] for s in group}
+        union = next(iter(targets.values())) if len(targets) == 1 else self._union(list(targets.values()))
+        if union is not None:
+            return group, union
+        count: dict[int, int] = {}
+        for s in group:
+            count[id(s.request[0])] = count.get(id(s.request[0]), 0) + 1
+        best = max(count, key=count.get)  # max keeps the first of equal counts
+        return [s for s in group if id(s.request[0]) == best], targets[best]
+
+    def _union(self, targets: list[Renderer]) -> Renderer | None:
+        """The renderer of the union of ``targets``' Gaussians (``Renderer.covering``), or None when it holds
+        more than ``union_limit`` times the largest's (the last few are kept: the groups of a batch repeat until
+        a query selects a new working set)."""
+        key = tuple(sorted(id(t) for t in targets))
+        hit = self._unions.get(key)
+        if hit is not None and all(a is b for a, b in zip(hit[0], sorted(targets, key=id))):
+            return hit[1]
+        root = targets[0].root
+        union = root.covering(targets)
+        if union.n > self.union_limit * max(t.n for t in targets):
+            union = None
+        if len(self._unions) >= 16:
+            self._unions.clear()
+        self._unions[key] = (sorted(targets, key=id), union)  # the references keep the ids unique while cached
+        return union
+
+    def _launch(self, group: list[_Slot], target: Renderer) -> None:
+        """One launch for the calls of ``group`` (same map, method, camera and settings) on ``target`` (their
+        renderer or their renderers' union: :meth:`_together`)."""
+        _, name, _, _ = group[0].request
         calls = [s.arguments for s in group]
         stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
         slot_of = {id(q): k for k, q in enumerate(stats)}
         poses = [p for c in calls for p in c["poses"]]
         index = np.concatenate([np.full(len(c["poses"]), slot_of[id(c["qstats"])], np.int32) for c in calls])
         args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
+        self.union_launches += len({id(s.request[0]) for s in group}) > 1
         try:
             out = getattr(target, name)(poses=poses, qstats=self._stacked(target, stats), query_index=index, **args)
         except Exception:  # noqa: BLE001 - each call then gets its own answer (and its own error)
@@ -227,7 +273,7 @@ def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, di
     a = bound.arguments
     if a["query_index"] is not None or a["qstats"].shape[0] != 1:
         return None, None
-    return (id(target), name, a["camera"], tuple(float(v) for v in np.ravel(a["background"])),
+    return (id(target.root), name, a["camera"], tuple(float(v) for v in np.ravel(a["background"])),
             float(a["mask_alpha"]), bool(a.get("luminance", False))), a
 
 

@@ -7,6 +7,7 @@ per image size, so repeated calls neither re-upload the scene nor recompile (ker
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -58,6 +59,8 @@ class Renderer:
         self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
         self._reduce = reduce_kernel()
         self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks
+        self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
+        self._root_index: np.ndarray | None = None  # resident indices there (increasing)
 
     # ---- the Gaussians: subsets share this renderer's kernels and pool ----
 
@@ -76,7 +79,26 @@ class Renderer:
         other = object.__new__(Renderer)
         other.__dict__.update(self.__dict__)
         other.gaussians = gaussians
+        other._root = other._root_index = None
         return other
+
+    @property
+    def root(self) -> Renderer:
+        """The renderer this one's Gaussians were selected from (:meth:`subset`, :meth:`working_set`; itself when
+        it is not a subset)."""
+        return self._root if self._root is not None else self
+
+    def covering(self, renderers: Sequence[Renderer]) -> Renderer:
+        """A renderer of the union of ``renderers``' Gaussians, all subsets of this one (or this one), in resident
+        order: where each of them renders a pose bit for bit as this one does (a working set's region), so does
+        the union (it keeps every Gaussian they keep, in the same order). This one when any of them is, or when
+        the union holds nearly all Gaussians."""
+        if any(r.root is not self for r in renderers):
+            raise ValueError("covering: every renderer must be a subset of this one")
+        if any(r is self for r in renderers):
+            return self
+        idx = functools.reduce(np.union1d, [r._root_index for r in renderers]).astype(np.int32)
+        return self if idx.size >= 0.95 * self.n else self.subset(idx)
 
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float, max_rotation_deg: float
                     ) -> Renderer:
@@ -117,7 +139,10 @@ class Renderer:
             dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
             cull.gather_kernel(len(src.shape))(src, nd_idx, dst)
             gathered[name] = dst
-        return self.with_gaussians(DeviceGaussians(**gathered, source_index=self.source_index[idx]))
+        other = self.with_gaussians(DeviceGaussians(**gathered, source_index=self.source_index[idx]))
+        other._root = self.root
+        other._root_index = idx if self._root_index is None else self._root_index[idx]
+        return other
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Host copies of the resident Gaussians, in resident order: ``means`` [n, 3], ``cov3d`` [n, 6]

@@ -2,8 +2,9 @@
 # The checks that need a GPU, in one run: the kernel tests on CUDA (against the PyTorch reference and the serial
 # sort; the parallel sort is Taichi's radix sort), the same refinements recorded on CUDA and on the CPU and
 # compared, the throughput table on CUDA (queries per second, render-times per query, sequential and in lockstep
-# batches; the 7-Scenes-shaped job with 64 queries so that a batch of 32 fills), the derivative pass with and
-# without pixel masks and the map-scale table.
+# batches; the 7-Scenes-shaped job with 64 queries so that a batch of 32 fills; the densified room's batches
+# with their working sets' union up to the whole map, at most 2x and none: backend.DEFAULT_UNION_LIMIT), the
+# derivative pass with and without pixel masks and the map-scale table.
 # Usage (the package installed with its test extras, ../shared/data beside the repository):
 #   bash benchmarks/gpu_check.sh [OUT_DIR]        (about 5 minutes on an H100)
 set -u -o pipefail
@@ -19,6 +20,10 @@ HGSLOC_ARCH=cuda python benchmarks/backends.py --out "$out/cuda.json" || status=
 HGSLOC_ARCH=cpu python benchmarks/backends.py --out "$out/cpu.json" || status=1
 python benchmarks/backends.py --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/throughput.py --shaped-queries 64 --out "$out/throughput_cuda.md" || status=1
+HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 1 \
+    --out "$out/throughput_cuda_no_union.md" || status=1
+HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 2 \
+    --out "$out/throughput_cuda_union2.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/map_scale.py --paths "whole map, search" "working set, gradient first" \
     --out "$out/map_scale_cuda.md" || status=1

@@ -162,9 +162,11 @@ def kernel_launches():
         kernel_impl.Kernel.__call__ = original
 
 
-def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int) -> tuple[list, float, Lockstep]:
-    """The queries in lockstep batches: (results in input order, seconds per query, the gate with its counts)."""
-    gate = Lockstep(batch_size)
+def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit: float | None = None
+            ) -> tuple[list, float, Lockstep]:
+    """The queries in lockstep batches (``union_limit``: ``Lockstep``'s, None: its default): (results in input
+    order, seconds per query, the gate with its counts)."""
+    gate = Lockstep(batch_size, union_limit)
     t0 = time.perf_counter()
     pairs = sorted(refine_queries(refiner, as_queries(items), gate=gate), key=lambda qr: qr[0].index)
     return [r for _, r in pairs], (time.perf_counter() - t0) / len(items), gate
@@ -176,7 +178,7 @@ CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
 
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,
-        raster: hp.RasterConfig | None = None) -> tuple[str, str] | None:
+        raster: hp.RasterConfig | None = None, union_limit: float | None = None) -> tuple[str, str] | None:
     loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -200,7 +202,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     # shared machine; the mean of the two follows the state the queries ran in)
     ms, ms_batch = np.mean([before, render_ms(refiner, cam, priors[0])], axis=0)
     with kernel_launches() as batch_launches:
-        together, sec_b, gate = batched(refiner, items, batch_size)
+        together, sec_b, gate = batched(refiner, items, batch_size, union_limit)
     same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for a, b in zip(results, together))
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
@@ -236,6 +238,9 @@ def main() -> None:
     ap.add_argument("--layout", choices=["backend", "cuda"], default="backend",
                     help="renderer settings: the backend's defaults, or CUDA's forced on any backend (its launch "
                          "counts; slow on the CPU)")
+    ap.add_argument("--union-limit", type=float,
+                    help="Lockstep's union_limit (default: its own): 1 keeps the working sets of a large map's "
+                         "queries in launches of their own")
     a = ap.parse_args()
     pct, deg = (float(x) for x in a.noise.split(","))
     arch = hp.init()
@@ -243,14 +248,15 @@ def main() -> None:
     bs = a.batch_size or default_batch_size()
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
             f"ACE's and Marepo's errors); sequential, then batched ({bs} queries in lockstep)"
-            f"{'; CUDA layout ' + str(CUDA_LAYOUT) if raster else ''}.", "",
+            f"{'; CUDA layout ' + str(CUDA_LAYOUT) if raster else ''}"
+            f"{'; union limit ' + format(a.union_limit, 'g') if a.union_limit else ''}.", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
             "| batched s / query | batched speed | device calls / query | kernel launches / query | same poses |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster) for c in a.cases) if r]
+    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit) for c in a.cases) if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import sys
 from pathlib import Path
@@ -114,3 +115,17 @@ DEFAULT_BATCH_SIZE = {"cpu": 4, "cuda": 32}
 def default_batch_size() -> int:
     """The default ``batch_size`` of the backend in use (``DEFAULT_BATCH_SIZE``)."""
     return DEFAULT_BATCH_SIZE[current_arch()]
+
+
+#: how much larger than a group's largest working set the union a lockstep launch renders from may be
+#: (``lockstep.Lockstep``'s ``union_limit``), per backend. The CPU: 1, no union (the densified room's 975k
+#: Gaussians, batches of 4: 0.72x the sequential speed with unions of up to 2x, 1.02x without;
+#: ``benchmarks/throughput.md``): its kernels already fill the cores, and a union's extra Gaussians are extra
+#: projection work for every pose. CUDA: any union (up to the whole map, there 1.5x a working set's render time,
+#: ``benchmarks/map_scale.md``), so a batch of 32 queries shares its launches; not yet measured in batches.
+DEFAULT_UNION_LIMIT = {"cpu": 1.0, "cuda": math.inf}
+
+
+def default_union_limit() -> float:
+    """The default ``union_limit`` of the backend in use (``DEFAULT_UNION_LIMIT``)."""
+    return DEFAULT_UNION_LIMIT[current_arch()]

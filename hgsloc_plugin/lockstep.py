@@ -17,8 +17,8 @@ A query that finishes leaves the batch and the next one takes its place; at most
 On maps of ``RefineConfig.working_set_min`` Gaussians or more each query renders from its own working set (a
 subset of the map); the calls of one group then render from the union of their subsets
 (``Renderer.covering``: every pose's image is the whole map's, bit for bit) when it holds at most
-``union_limit`` times the largest subset's Gaussians, else the calls of the group's most common subset go
-together and the others wait.
+``union_limit`` times the largest subset's Gaussians (``backend.DEFAULT_UNION_LIMIT``: none on the CPU, any on
+CUDA), else the calls of the group's most common subset go together and the others wait.
 """
 
 from __future__ import annotations
@@ -31,10 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .backend import default_union_limit
 from .render.renderer import Renderer
 
-#: default ``Lockstep.union_limit``
-UNION_LIMIT = 2.0
 #: the batched calls, and how each one's keyword values are read from its arguments
 _BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
 
@@ -64,13 +63,14 @@ class Lockstep:
     Args:
         batch_size: live queries at most (the memory bound: a launch holds up to this many queries' poses).
         union_limit: how much larger than the largest working set of a group the union its launch renders from
-            may be (``UNION_LIMIT``; 1: only calls on one working set share a launch).
+            may be (None: the backend's, ``backend.default_union_limit``; 1: only calls on one working set share a
+            launch; ``math.inf``: any union, up to the whole map).
     """
 
-    def __init__(self, batch_size: int, union_limit: float = None):
+    def __init__(self, batch_size: int, union_limit: float | None = None):
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-        union_limit = UNION_LIMIT if union_limit is None else float(union_limit)
+        union_limit = default_union_limit() if union_limit is None else float(union_limit)
         if not union_limit >= 1.0:
             raise ValueError(f"union_limit must be >= 1, got {union_limit!r}")
         self.batch_size = int(batch_size)
@@ -214,9 +214,8 @@ class Lockstep:
         hit = self._unions.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], sorted(targets, key=id))):
             return hit[1]
-        root = targets[0].root
-        union = root.covering(targets)
-        if union.n > self.union_limit * max(t.n for t in targets):
+        union = targets[0].root.covering(targets) if self.union_limit > 1.0 else None
+        if union is not None and union.n > self.union_limit * max(t.n for t in targets):
             union = None
         if len(self._unions) >= 16:
             self._unions.clear()

@@ -158,8 +158,9 @@ def test_a_gate_runs_batch_after_batch(room):
 
 def test_working_sets_share_launches_through_their_union():
     """On a map rendered from per-query working sets, the calls of several queries (each on its own subset of
-    the map) share launches rendered from the union of their subsets, and every result equals the one-at-a-time
-    result field for field; with ``union_limit`` 1 no two working sets share a launch."""
+    the map) share launches rendered from the union of their subsets (``union_limit`` 2), and every result equals
+    the one-at-a-time result field for field; with ``union_limit`` 1 (the CPU's default) no two working sets share a
+    launch, with the same poses."""
     cam = hp.Camera.from_focal(96, 72, 70.0)
     items = []
     for k in range(3):
@@ -168,7 +169,7 @@ def test_working_sets_share_launches_through_their_union():
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("fast", working_set_min=0))
     one = refiner.refine_many(items, progress=False, batch_size=1)
     assert all(r.working_set < 0.6 * len(scene) for r in one) and len({r.working_set for r in one}) == 3
-    gate = Lockstep(3)
+    gate = Lockstep(3, union_limit=2.0)
     pairs = list(refine_queries(refiner, as_queries(items), gate=gate))
     batched = [res for _, res in sorted(pairs, key=lambda qr: qr[0].index)]
     for a, b in zip(one, batched):  # as text: the records hold NaN (no prior error given)
@@ -180,3 +181,4 @@ def test_working_sets_share_launches_through_their_union():
     assert [r.pose for _, r in sorted(pairs, key=lambda qr: qr[0].index)] == [r.pose for r in one]
     with pytest.raises(ValueError, match="union_limit"):
         Lockstep(3, union_limit=0.5)
+    assert Lockstep(3).union_limit == hp.backend.DEFAULT_UNION_LIMIT[hp.backend.current_arch()]

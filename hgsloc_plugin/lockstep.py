@@ -16,7 +16,7 @@ that fell out of step meet again at a common call. So:
 A query that finishes leaves the batch and the next one takes its place; at most ``batch_size`` are live.
 On maps of ``RefineConfig.working_set_min`` Gaussians or more each query renders from its own working set (a
 subset of the map); the calls of one group then render from the union of their subsets
-(``Renderer.covering``: every pose's image is the whole map's, bit for bit) when it holds at most
+(``Renderer.union``: every pose's image is the whole map's, bit for bit) when it holds at most
 ``union_limit`` times the largest subset's Gaussians (``backend.DEFAULT_UNION_LIMIT``: none on the CPU, any on
 CUDA), else the calls of the group's most common subset go together and the others wait.
 """
@@ -207,14 +207,14 @@ class Lockstep:
         return [s for s in group if id(s.request[0]) == best], targets[best]
 
     def _union(self, targets: list[Renderer]) -> Renderer | None:
-        """The renderer of the union of ``targets``' Gaussians (``Renderer.covering``), or None when it holds
+        """The renderer of the union of ``targets``' Gaussians (``Renderer.union``), or None when it holds
         more than ``union_limit`` times the largest's (the last few are kept: the groups of a batch repeat until
         a query selects a new working set)."""
         key = tuple(sorted(id(t) for t in targets))
         hit = self._unions.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], sorted(targets, key=id))):
             return hit[1]
-        union = targets[0].root.covering(targets) if self.union_limit > 1.0 else None
+        union = targets[0].root.union(targets) if self.union_limit > 1.0 else None
         if union is not None and union.n > self.union_limit * max(t.n for t in targets):
             union = None
         if len(self._unions) >= 16:

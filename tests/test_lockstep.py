@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import threading
@@ -175,6 +176,10 @@ def test_working_sets_share_launches_through_their_union():
     for a, b in zip(one, batched):  # as text: the records hold NaN (no prior error given)
         assert json.dumps(_record(a), sort_keys=True) == json.dumps(_record(b), sort_keys=True), a.name
     assert gate.union_launches > 0 and gate.launches < gate.requests
+    whole = Lockstep(3, union_limit=math.inf)  # CUDA's default: any union, the whole map when it holds nearly all
+    pairs = list(refine_queries(refiner, as_queries(items), gate=whole))
+    assert [r.pose for _, r in sorted(pairs, key=lambda qr: qr[0].index)] == [r.pose for r in one]
+    assert whole.launches <= gate.launches
     alone = Lockstep(3, union_limit=1.0)
     pairs = list(refine_queries(refiner, as_queries(items), gate=alone))
     assert alone.union_launches == 0 and alone.launches == alone.requests

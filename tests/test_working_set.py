@@ -170,7 +170,7 @@ def test_working_sets_share_workspaces_and_ignore_stale_columns():
 
 
 def test_union_of_working_sets_renders_each_region_like_the_whole_map():
-    """``Renderer.covering``: the union of two working sets (regions around two poses), in resident order,
+    """``Renderer.union``: the union of two working sets (regions around two poses), in resident order,
     renders the poses of either region bit for bit as the whole map does, while holding fewer Gaussians than it;
     a subset of a subset maps to the map's indices; the map itself, or a renderer of another map, is refused or
     returned as asked."""
@@ -180,7 +180,7 @@ def test_union_of_working_sets_renders_each_region_like_the_whole_map():
     T1, T2 = query_poses(2, seed=3)
     a = full.working_set([cam], T1, 0.02, 1.0)
     b = full.working_set([cam], T2, 0.02, 1.0)
-    u = full.covering([a, b])
+    u = full.union([a, b])
     assert max(a.n, b.n) < u.n < full.n and u.root is full and a.root is full
     both = np.union1d(a.source_index, b.source_index)
     assert np.array_equal(u.source_index, full.source_index[np.isin(full.source_index, both)])  # resident order
@@ -192,9 +192,9 @@ def test_union_of_working_sets_renders_each_region_like_the_whole_map():
         np.testing.assert_array_equal(x, y)
     inner = a.subset(np.arange(0, a.n, 2, dtype=np.int32))
     assert inner.root is full and np.array_equal(inner.source_index, a.source_index[::2])
-    assert full.covering([a, full]) is full
+    assert full.union([a, full]) is full
     with pytest.raises(ValueError, match="subset"):
-        full.covering([get_renderer(random_scene(n=50))])
+        full.union([get_renderer(random_scene(n=50))])
 
 
 def test_subset_rejects_bad_indices():

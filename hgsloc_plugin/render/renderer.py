@@ -88,13 +88,13 @@ class Renderer:
         it is not a subset)."""
         return self._root if self._root is not None else self
 
-    def covering(self, renderers: Sequence[Renderer]) -> Renderer:
+    def union(self, renderers: Sequence[Renderer]) -> Renderer:
         """A renderer of the union of ``renderers``' Gaussians, all subsets of this one (or this one), in resident
         order: where each of them renders a pose bit for bit as this one does (a working set's region), so does
         the union (it keeps every Gaussian they keep, in the same order). This one when any of them is, or when
         the union holds nearly all Gaussians."""
         if any(r.root is not self for r in renderers):
-            raise ValueError("covering: every renderer must be a subset of this one")
+            raise ValueError("union: every renderer must be a subset of this one")
         if any(r is self for r in renderers):
             return self
         idx = functools.reduce(np.union1d, [r._root_index for r in renderers]).astype(np.int32)

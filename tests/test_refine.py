@@ -290,16 +290,18 @@ def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
 
 @pytest.mark.slow
 def test_no_wide_search_when_both_routes_end_in_one_minimum():
-    """A 15 cm / 3 deg prior on the sparse room (the digest's room query 3): the gradient route and the usual
-    search are both refused in one minimum (their poses within ``same_minimum_pixels``), so the wide search does
-    not run; run anyway (``same_minimum_pixels=0``) it is refused too and returns the same pose, at about 1.5 times
-    the renders. With the query's own small trust region there is nothing wider to search: no wide search."""
+    """A 15 cm / 3 deg prior on the sparse room (the digest's room query 3) with a noisy photo (noise of 0.15, so
+    the minimum's one-pixel rise is under 0.1 % of its cost): the gradient route and the usual search are both
+    refused in one minimum (their poses within ``same_minimum_pixels``), so the wide search does not run; run
+    anyway (``same_minimum_pixels=0``) it is refused too and returns the same pose, at about 1.5 times the
+    renders. With the query's own small trust region there is nothing wider to search: no wide search."""
     scene = make_room_scene(density=0.35)
     cam = hp.Camera(160, 120, 140.0, 140.0, 80.0, 60.0)
     rng = np.random.default_rng(7)
     gts = query_poses(4, seed=3)
     priors = [se3_noise(g, 1.0 + 2.0 * (k == 3), 0.03 + 0.12 * (k == 3), rng) for k, g in enumerate(gts)]
     img = hp.render(scene, cam, gts[3])
+    img = np.clip(img + np.random.default_rng(1).normal(0.0, 0.15, img.shape), 0.0, 1.0).astype(np.float32)
     skip = hp.HGSLocPlugin(scene).refine(img, cam, priors[3])
     run = hp.HGSLocPlugin(scene, hp.RefineConfig(same_minimum_pixels=0.0)).refine(img, cam, priors[3])
     assert skip.route == "search" and skip.gradient_rejected is not None and not skip.accepted

@@ -40,6 +40,10 @@ GOOD_RISES = np.full(12, 0.02)
     # one-pixel rise 0.5 % of its cost; the lowest right answer measured, 1.37 %
     (0.5045, 0.4599, np.full(12, 0.0023), 0.5, 3.98, "weak alignment"),
     (0.5045, 0.30, np.full(12, 0.0041), 0.5, 0.6, None),
+    # a perfect match (a map rendered at its own pose): the cost at zero, or a rounding below it, is aligned
+    (0.12, 0.0, np.full(12, 0.038), 0.1, 0.5, None),
+    (0.12, -1.7e-7, np.full(12, 0.038), 0.1, 0.5, None),
+    (0.12, -1.7e-7, np.zeros(12), 0.1, 0.5, "insignificant"),
 ])
 def test_acceptance_rule_reasons(initial, best, rises, travel, level_shift, reason):
     a = assess(initial, best, rises, travel, level_shift, check_alignment=True)
@@ -216,6 +220,10 @@ def test_pose_uncertainty_blocks_and_degenerate_cases():
     for bad, cost in ((np.diag([1.0, 1, 1, 1, 1, 0]), 0.2), (np.full((6, 6), np.nan), 0.2), (H, math.nan)):
         _, st_b, sr_b = pose_uncertainty(bad, cost)
         assert math.isinf(st_b) and math.isinf(sr_b)
+    # a perfect match: its cost rounds to about 0, either side; the uncertainty is the floor's, finite and tiny
+    for cost in (0.0, -1.7e-7):
+        cov0, st0, sr0 = pose_uncertainty(H, cost)
+        assert np.all(np.isfinite(cov0)) and 0 < st0 < 1e-3 * st and 0 < sr0 < 1e-3 * sr
 
 
 def _run_cli(args):

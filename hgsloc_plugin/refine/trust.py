@@ -46,6 +46,9 @@ MIN_ALIGNMENT = 0.011
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
 UNCERTAINTY_SCALE = 0.1
+#: the least cs cost the uncertainty is scaled by: a float32 rendering of the map at its own pose matches to
+#: about 1e-7 of the cost, either side of 0
+COST_FLOOR = 1e-9
 
 
 def sigmas(cov: np.ndarray) -> tuple[float, float]:
@@ -86,7 +89,8 @@ def pose_uncertainty(jtj: np.ndarray, cost: float) -> tuple[np.ndarray, float, f
 
     Args:
         jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
-            pose; cost: the cs cost there.
+            pose; cost: the cs cost there (at least ``COST_FLOOR``: a perfect match's cost rounds to about 0,
+            either side).
 
     Returns:
         (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
@@ -94,12 +98,12 @@ def pose_uncertainty(jtj: np.ndarray, cost: float) -> tuple[np.ndarray, float, f
         trace is ``v``'s). Infinite where ``jtj`` is singular or not finite.
     """
     H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
-    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or not (cost >= 0 and math.isfinite(cost)):
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or not math.isfinite(cost):
         return np.full((6, 6), math.inf), math.inf, math.inf
     ev = np.linalg.eigvalsh(H)
     if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
         return np.full((6, 6), math.inf), math.inf, math.inf
-    cov = UNCERTAINTY_SCALE ** 2 * cost * np.linalg.inv(H)
+    cov = UNCERTAINTY_SCALE ** 2 * max(cost, COST_FLOOR) * np.linalg.inv(H)
     return (cov, *sigmas(cov))
 
 
@@ -113,7 +117,8 @@ class Assessment:
         travel: largest of shift / max_shift and rotation / max_rotation from the coarse pose, in [0, 1].
         level_shift: distance between the coarse levels' best pose and the final one, in coarsest steps.
         kappa: median one-pixel rise of the cost at the best pose.
-        alignment: kappa / best cost (nan when not checked).
+        alignment: kappa / best cost (nan when not checked; inf at a best cost of zero or below, a perfect match
+            up to rounding, with a positive kappa).
         confidence: summary in [0, 1]: min(1, significance / 4) * min(1, sharpness / 0.1) * (1 - travel^4);
             0 when rejected.
         rejected: None when accepted, else the reason ("insignificant", "flat valley", ...).
@@ -171,7 +176,9 @@ def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: flo
     scale = kappa if kappa > 0 else math.inf
     significance = drop / scale
     sharpness = float(rises.min()) / scale if rises.size else math.nan
-    alignment = kappa / cost_best if check_alignment and cost_best > 0 else math.nan
+    alignment = math.nan
+    if check_alignment:  # a cost at zero (or a rounding below it: a perfect match) is perfectly aligned
+        alignment = kappa / cost_best if cost_best > 0 else (math.inf if kappa > 0 else math.nan)
     if not drop > 0:
         reason = "no improvement"
     elif not significance >= MIN_SIGNIFICANCE:

@@ -128,7 +128,7 @@ def stages(k: int) -> str:
 
     def project():
         r._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, cam.width, cam.height,
-                   ws.tile, 1, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed, np.zeros(1, np.int64))
+                   ws.tile, 1, ws.extent, ws.cams, rec.depth, rec.rect, rec.ntiles, rec.packed, np.zeros(1, np.int64))
 
     def ms(fn) -> float:
         fn()

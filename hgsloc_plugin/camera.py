@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -109,3 +110,17 @@ class Camera:
 
     def __str__(self) -> str:
         return f"{self.width}x{self.height} f=({self.fx:.3f},{self.fy:.3f}) c=({self.cx:.3f},{self.cy:.3f})"
+
+
+def pose_cameras(camera: Camera | Sequence[Camera], n: int) -> list[Camera]:
+    """A camera per pose of ``n`` from one camera or a sequence of ``n`` (intrinsics may differ, not the image
+    size: a launch renders one size)."""
+    if isinstance(camera, Camera):
+        return [camera] * n
+    cams = list(camera)
+    if len(cams) != n:
+        raise ValueError(f"{len(cams)} cameras for {n} poses: give one camera, or one per pose")
+    if len({(c.width, c.height) for c in cams}) > 1:
+        raise ValueError(f"the cameras of one call must share one image size, got "
+                         f"{sorted({(c.width, c.height) for c in cams})}")
+    return cams

@@ -3,10 +3,11 @@
 Each query of a batch runs in a worker thread whose refiner renders through a :class:`DeviceProxy`: every
 device call is handed to the thread that runs the batch, and the worker waits for its answer. When every live
 query waits, that thread serves one round: the calls that cannot be batched (query uploads and the like) if any
-wait, else the largest group of ``window_cost`` or ``pose_gradient`` calls of one renderer, camera and settings,
+wait, else the largest group of ``window_cost`` or ``pose_gradient`` calls of one map, image size and settings,
 in one launch (their query statistics stacked on the device, each pose scored against its own query:
-``Renderer.stack_window_queries``); the queries served resume, the others wait for a later round, so queries
-that fell out of step meet again at a common call. So:
+``Renderer.stack_window_queries``, and rendered with its own query's camera: intrinsics may differ); the queries
+served resume, the others wait for a later round, so queries that fell out of step meet again at a common call.
+So:
 
 - the host talks to the device once per step of the batch, not once per render call of each query;
 - Taichi is only ever called from one thread (CUDA contexts are per thread), one call at a time;
@@ -32,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .backend import default_union_limit
+from .camera import Camera
 from .render.renderer import Renderer
 
 #: the batched calls, and how each one's keyword values are read from its arguments
@@ -193,7 +195,7 @@ class Lockstep:
             s.resume.set()
 
     def _together(self, group: list[_Slot]) -> tuple[list[_Slot], Renderer]:
-        """The calls of ``group`` (one map, method, camera and settings) that go into one launch, and the renderer
+        """The calls of ``group`` (one map, method, image size and settings) that go into one launch, and the renderer
         it renders from: all of them and their renderers' union when that is within ``union_limit``, else those
         of the most common renderer (the first met on a tie) and that renderer."""
         targets = {id(s.request[0]): s.request[0] for s in group}
@@ -223,8 +225,8 @@ class Lockstep:
         return union
 
     def _launch(self, group: list[_Slot], target: Renderer) -> None:
-        """One launch for the calls of ``group`` (same map, method, camera and settings) on ``target`` (their
-        renderer or their renderers' union: :meth:`_together`)."""
+        """One launch for the calls of ``group`` (same map, method, image size and settings) on ``target`` (their
+        renderer or their renderers' union: :meth:`_together`), each pose with its call's camera."""
         _, name, _, _ = group[0].request
         calls = [s.arguments for s in group]
         stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
@@ -232,6 +234,8 @@ class Lockstep:
         poses = [p for c in calls for p in c["poses"]]
         index = np.concatenate([np.full(len(c["poses"]), slot_of[id(c["qstats"])], np.int32) for c in calls])
         args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
+        if any(c["camera"] != args["camera"] for c in calls):  # queries of other intrinsics: a camera per pose
+            args["camera"] = [c["camera"] for c in calls for _ in c["poses"]]
         self.union_launches += len({id(s.request[0]) for s in group}) > 1
         try:
             out = getattr(target, name)(poses=poses, qstats=self._stacked(target, stats), query_index=index, **args)
@@ -272,7 +276,10 @@ def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, di
     a = bound.arguments
     if a["query_index"] is not None or a["qstats"].shape[0] != 1:
         return None, None
-    return (id(target.root), name, a["camera"], tuple(float(v) for v in np.ravel(a["background"])),
+    camera = a["camera"]
+    if not isinstance(camera, Camera):
+        return None, None
+    return (id(target.root), name, (camera.width, camera.height), tuple(float(v) for v in np.ravel(a["background"])),
             float(a["mask_alpha"]), bool(a.get("luminance", False))), a
 
 

@@ -1,7 +1,8 @@
 """Record layouts shared by the kernels and their Python decoders, defined once.
 
 ``Rec``: the per-Gaussian record the projection kernel writes (``packed [B, N, Rec.SIZE]``) and both blend
-layouts read. ``Stat``: the per-pose photometric statistics the fused cost kernels accumulate
+layouts read. ``Cam``: the per-pose camera record the projection writes (``cams [B, Cam.SIZE]``) and reads, and
+the derivative pass reads. ``Stat``: the per-pose photometric statistics the fused cost kernels accumulate
 (``stats [B, Stat.SIZE]``) and ``hgsloc_plugin.costs`` decodes. Kernels index with these names inside
 ``ti.static`` code, so a field moves in one place only.
 """
@@ -21,6 +22,26 @@ class Rec:
     RGB = 8  # 8, 9, 10: colour after SH and the +0.5 offset, clamped at 0
     DEPTH = 11  # camera z
     SIZE = 12
+
+
+class Cam:
+    """Per-pose camera record (float32), from the pose's intrinsics and extent coefficients."""
+
+    FX = 0  # intrinsics, pixels
+    FY = 1
+    CX = 2
+    CY = 3
+    LIM_X_POS = 4  # Jacobian clamps of x / z and y / z (``projection.jacobian_clamps``)
+    LIM_X_NEG = 5
+    LIM_Y_POS = 6
+    LIM_Y_NEG = 7
+    EARLY_A = 8  # early frustum test: box half-extent <= EARLY_A * smax / z + EARLY_B (normalised units)
+    EARLY_B = 9
+    X_LO = 10  # the image's bounds in normalised units (x / z, y / z)
+    X_HI = 11
+    Y_LO = 12
+    Y_HI = 13
+    SIZE = 14
 
 
 class Stat:

@@ -37,8 +37,8 @@ import taichi as ti
 from .blend import tile_range
 from .config import RasterConfig
 from .grain import item, spread
-from .layout import Rec
-from .projection import camera_covariance, clamped_jacobian, jacobian_clamps, view_rt
+from .layout import Cam, Rec
+from .projection import camera_covariance, clamped_jacobian, view_rt
 
 NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in dpacked (times NXI)
@@ -61,8 +61,9 @@ def projection_grad_func(config: RasterConfig):
     """``projection_grad`` (a ti.func: one parallel loop).
 
     Arguments:
-        means [N, 3], cov3d [N, 6], viewmats [B, 4, 4] (``projection.view_rt``), intrin [4] (fx, fy, cx, cy),
-        width, height, num_poses, ntiles [B, N] (from the projection: 0 = culled, skipped);
+        means [N, 3], cov3d [N, 6], viewmats [B, 4, 4] (``projection.view_rt``), cams [B, Cam.SIZE] (each pose's
+        camera record from the projection, ``layout.Cam``), num_poses, ntiles [B, N] (from the projection: 0 =
+        culled, skipped);
         output: dpacked [B, N, NDER].
     """
     eps2d = config.eps2d
@@ -72,25 +73,22 @@ def projection_grad_func(config: RasterConfig):
         means: ti.template(),
         cov3d: ti.template(),
         viewmats: ti.template(),
-        intrin: ti.template(),
-        width,
-        height,
+        cams: ti.template(),
         num_poses,
         ntiles: ti.template(),
         dpacked: ti.template(),
     ):
         n = means.shape[0]
-        fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
-        wf = ti.cast(width, ti.f32)
-        hf = ti.cast(height, ti.f32)
-        lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
         for b, i in ti.ndrange(num_poses, n):
             if ntiles[b, i] == 0:
                 continue
+            fx = cams[b, Cam.FX]
+            fy = cams[b, Cam.FY]
             R, t = view_rt(viewmats, b)
             p = R @ ti.Vector([means[i, 0], means[i, 1], means[i, 2]]) + t
             Sc = camera_covariance(cov3d, i, R)
-            J, ux, vy = clamped_jacobian(p, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
+            J, ux, vy = clamped_jacobian(p, fx, fy, cams[b, Cam.LIM_X_POS], cams[b, Cam.LIM_X_NEG],
+                                         cams[b, Cam.LIM_Y_POS], cams[b, Cam.LIM_Y_NEG])
             z = p[2]
             rz = 1.0 / z
             free_x = 1.0 if ux == p[0] * rz else 0.0  # unclamped: tx = x; clamped: tx = z * limit
@@ -276,9 +274,11 @@ def blend_grad_func(config: RasterConfig, masked: bool):
 @functools.cache
 def derivative_images_kernel(config: RasterConfig, masked: bool):
     """The derivative pass after the projection and tile sort of the same poses, in one launch: the records'
-    derivatives (``projection_grad``), with ``masked`` the pixel masks (``pixel_masks``), then the colour, alpha
-    and colour derivatives (``blend_grad``). Arguments: those of the three, in that order, each once."""
-    records, masks_of, blend = projection_grad_func(config), pixel_masks_func(config), blend_grad_func(config, masked)
+    derivatives (``projection_grad``, each pose with its camera record from the projection's ``cams``), with
+    ``masked`` the pixel masks (``pixel_masks``), then the colour, alpha and colour derivatives (``blend_grad``).
+    Arguments: those of the three, in that order, each once."""
+    records, masks_of = projection_grad_func(config), pixel_masks_func(config)
+    blend = blend_grad_func(config, masked)
     f32, i32 = ti.f32, ti.i32
 
     @ti.kernel
@@ -286,7 +286,7 @@ def derivative_images_kernel(config: RasterConfig, masked: bool):
         means: ti.types.ndarray(dtype=f32, ndim=2),
         cov3d: ti.types.ndarray(dtype=f32, ndim=2),
         viewmats: ti.types.ndarray(dtype=f32, ndim=3),
-        intrin: ti.types.ndarray(dtype=f32, ndim=1),
+        cams: ti.types.ndarray(dtype=f32, ndim=2),
         width: i32,
         height: i32,
         num_poses: i32,
@@ -304,7 +304,7 @@ def derivative_images_kernel(config: RasterConfig, masked: bool):
         out_alpha: ti.types.ndarray(dtype=f32, ndim=3),
         out_d: ti.types.ndarray(dtype=f32, ndim=4),
     ):
-        records(means, cov3d, viewmats, intrin, width, height, num_poses, ntiles, dpacked)
+        records(means, cov3d, viewmats, cams, num_poses, ntiles, dpacked)
         if ti.static(masked):
             masks_of(packed, tile_start, isect, isect_base, tiles_x, tiles_y, num_poses, width, height, masks)
         blend(packed, dpacked, tile_start, isect, isect_base, masks, background, tiles_x, num_poses, out_rgb,

@@ -11,7 +11,7 @@ import math
 import taichi as ti
 
 from .config import RasterConfig
-from .layout import Rec
+from .layout import Cam, Rec
 from .sh import make_sh_func
 from .tile_sort import count_tiles
 
@@ -24,6 +24,29 @@ def jacobian_clamps(fx, fy, cx, cy, wf, hf):
     tan_fovy = 0.5 * hf / fy
     return ((wf - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx, (hf - cy) / fy + 0.3 * tan_fovy,
             cy / fy + 0.3 * tan_fovy)
+
+
+@ti.func
+def camera_records(intrin: ti.template(), extent: ti.template(), wf, hf, num_poses, cams: ti.template()):
+    """Each pose's camera record cams [B, Cam.SIZE] (``layout.Cam``) from its intrinsics intrin [B, 4] (fx, fy,
+    cx, cy) and extent coefficients extent [B, 2], for images of wf x hf pixels (one loop: a task of its own)."""
+    for b in range(num_poses):
+        fx, fy, cx, cy = intrin[b, 0], intrin[b, 1], intrin[b, 2], intrin[b, 3]
+        lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
+        cams[b, Cam.FX] = fx
+        cams[b, Cam.FY] = fy
+        cams[b, Cam.CX] = cx
+        cams[b, Cam.CY] = cy
+        cams[b, Cam.LIM_X_POS] = lim_x_pos
+        cams[b, Cam.LIM_X_NEG] = lim_x_neg
+        cams[b, Cam.LIM_Y_POS] = lim_y_pos
+        cams[b, Cam.LIM_Y_NEG] = lim_y_neg
+        cams[b, Cam.EARLY_A] = extent[b, 0]
+        cams[b, Cam.EARLY_B] = extent[b, 1]
+        cams[b, Cam.X_LO] = -cx / fx
+        cams[b, Cam.X_HI] = (wf - cx) / fx
+        cams[b, Cam.Y_LO] = -cy / fy
+        cams[b, Cam.Y_HI] = (hf - cy) / fy
 
 
 @ti.func
@@ -62,15 +85,18 @@ def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
 def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
     """Compiled projection kernel for one config and SH degree; ``count``: it also sums each pose's tile
     intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial sort; a host array: they
-    come back with the launch), else ``totals`` is not touched.
+    come back with the launch), else ``totals`` is not touched. Each pose has its own camera (one image size):
+    one launch renders the poses of queries of other intrinsics as their own launches would, bit for bit.
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
         scale), viewmats [B, 4, 4] (rows 0-2: world-to-camera [R | t]; row 3: the camera centre, then 0: one
-        upload per call), intrin [4] (fx, fy, cx, cy), width, height, tile (tile edge in pixels: the renders' or
-        the derivative pass's), num_poses, extent [2] (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f
-        for this camera: the bound of an early, conservative frustum test before the covariance);
-        outputs: depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
+        upload per call), intrin [B, 4] (each pose's fx, fy, cx, cy), width, height (one image size for all),
+        tile (tile edge in pixels: the renders' or the derivative pass's), num_poses, extent [B, 2]
+        (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f for each pose's camera: the bound of an
+        early, conservative frustum test before the covariance);
+        outputs: cams [B, Cam.SIZE] (each pose's camera record, ``layout.Cam``, also read by the derivative
+        pass), depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
         ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
         (fields named in ``layout.Rec``).
     """
@@ -89,12 +115,13 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
         sh: ti.types.ndarray(dtype=ti.f32, ndim=3),
         smax: ti.types.ndarray(dtype=ti.f32, ndim=1),
         viewmats: ti.types.ndarray(dtype=ti.f32, ndim=3),
-        intrin: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        intrin: ti.types.ndarray(dtype=ti.f32, ndim=2),
         width: ti.i32,
         height: ti.i32,
         tile: ti.i32,
         num_poses: ti.i32,
-        extent: ti.types.ndarray(dtype=ti.f32, ndim=1),
+        extent: ti.types.ndarray(dtype=ti.f32, ndim=2),
+        cams: ti.types.ndarray(dtype=ti.f32, ndim=2),
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
         rect: ti.types.ndarray(dtype=ti.i32, ndim=3),
         ntiles: ti.types.ndarray(dtype=ti.i32, ndim=2),
@@ -102,17 +129,15 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
         totals: ti.types.ndarray(dtype=ti.i64, ndim=1),
     ):
         n = means.shape[0]
-        fx, fy, cx, cy = intrin[0], intrin[1], intrin[2], intrin[3]
         wf = ti.cast(width, ti.f32)
         hf = ti.cast(height, ti.f32)
         tiles_x = (width + tile - 1) // tile
         tiles_y = (height + tile - 1) // tile
         tf = ti.cast(tile, ti.f32)
-        lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
-        # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
-        early_a, early_b = extent[0], extent[1]
-        x_lo, x_hi = -cx / fx, (wf - cx) / fx
-        y_lo, y_hi = -cy / fy, (hf - cy) / fy
+        # each pose's camera record, read below from memory even when all poses share one camera: the compiled
+        # arithmetic then does not depend on whether they do (with loop-invariant intrinsics, fast math
+        # reassociates differently), so a pose's numbers do not depend on the others of its launch
+        camera_records(intrin, extent, wf, hf, num_poses, cams)
         # one task per Gaussian, its poses in an inner loop: the Gaussian's data and its pose-independent terms
         # (the opacity's logarithm) are read and computed once per batch instead of once per pose
         for i in range(n):
@@ -129,13 +154,16 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
                 if z < near or z > far:
                     continue
                 rz0 = 1.0 / z
-                ext = early_a * s_i * rz0 + early_b
+                # box half-extent in normalised units <= early_a * smax / z + early_b (the bound of cull.py)
+                ext = cams[b, Cam.EARLY_A] * s_i * rz0 + cams[b, Cam.EARLY_B]
                 u0 = p_c[0] * rz0
                 v0 = p_c[1] * rz0
-                if u0 - ext > x_hi or u0 + ext < x_lo or v0 - ext > y_hi or v0 + ext < y_lo:
+                if (u0 - ext > cams[b, Cam.X_HI] or u0 + ext < cams[b, Cam.X_LO] or v0 - ext > cams[b, Cam.Y_HI]
+                        or v0 + ext < cams[b, Cam.Y_LO]):
                     continue  # the box below would miss the image too
                 Sc = camera_covariance(cov3d, i, R)
-                J, _, _ = clamped_jacobian(p_c, fx, fy, lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg)
+                J, _, _ = clamped_jacobian(p_c, cams[b, Cam.FX], cams[b, Cam.FY], cams[b, Cam.LIM_X_POS],
+                                           cams[b, Cam.LIM_X_NEG], cams[b, Cam.LIM_Y_POS], cams[b, Cam.LIM_Y_NEG])
                 rz = 1.0 / z
                 cov2 = J @ Sc @ J.transpose()
                 c00 = cov2[0, 0] + eps2d
@@ -145,8 +173,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
                 if det <= 0.0:
                     continue
                 inv_det = 1.0 / det
-                mx = fx * p_c[0] * rz + cx
-                my = fy * p_c[1] * rz + cy
+                mx = cams[b, Cam.FX] * p_c[0] * rz + cams[b, Cam.CX]
+                my = cams[b, Cam.FY] * p_c[1] * rz + cams[b, Cam.CY]
                 rx = 0.0
                 ry = 0.0
                 if ti.static(inria):

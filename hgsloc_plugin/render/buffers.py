@@ -12,7 +12,7 @@ import numpy as np
 import taichi as ti
 
 from ..kernels import window_grad
-from ..kernels.layout import Rec
+from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
 from ..kernels.readback import readback_kernel
@@ -133,8 +133,9 @@ class Workspace:
     tile: int
     tiles: tuple[int, int]
     viewmats: ti.Ndarray  # [B, 4, 4]: rows 0-2 world-to-camera [R | t], row 3 the camera centre (then 0)
-    intrin: ti.Ndarray  # [4]: fx, fy, cx, cy
-    extent: ti.Ndarray  # [2]: the projection's extent coefficients
+    intrin: ti.Ndarray  # [B, 4]: each pose's fx, fy, cx, cy
+    extent: ti.Ndarray  # [B, 2]: the projection's extent coefficients of each pose's camera
+    cams: ti.Ndarray  # [B, Cam.SIZE]: the camera records the projection writes (``kernels.layout.Cam``)
     isect_base: ti.Ndarray  # [B]
     background: ti.Ndarray  # [3]
     tile_start: ti.Ndarray
@@ -161,7 +162,8 @@ class Workspace:
             raise ValueError(f"image {width}x{height} has too many tiles per axis")
         nd = ti.ndarray
         common = dict(batch=B, tile=tile, tiles=(tx, ty), viewmats=nd(ti.f32, (B, 4, 4)),
-                      intrin=nd(ti.f32, (4,)), extent=nd(ti.f32, (2,)), isect_base=nd(ti.i64, (B,)),
+                      intrin=nd(ti.f32, (B, 4)), extent=nd(ti.f32, (B, 2)), cams=nd(ti.f32, (B, Cam.SIZE)),
+                      isect_base=nd(ti.i64, (B,)),
                       background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:
             return cls(**common, tile_counts=nd(ti.i32, (B * tx * ty,)))

@@ -31,11 +31,12 @@ def derivative_workspace(r, camera: Camera, batch: int) -> DerivativeWorkspace:
     return ws
 
 
-def derivative_images(r, camera: Camera, part: list[Pose], background) -> DerivativeWorkspace:
-    """Geometry, derivative records and derivative blending of up to ``r.grad_chunk`` poses; the images stay on
-    the device (``rgb``, ``alpha``, ``drgb`` of the returned workspace)."""
+def derivative_images(r, cams: list[Camera], part: list[Pose], background) -> DerivativeWorkspace:
+    """Geometry, derivative records and derivative blending of up to ``r.grad_chunk`` poses (a camera each, one
+    image size); the images stay on the device (``rgb``, ``alpha``, ``drgb`` of the returned workspace)."""
+    camera = cams[0]
     ws = r._workspace(camera, len(part), grad=True)
-    r._geometry(camera, part, ws, background)
+    r._geometry(cams, part, ws, background)
     g = derivative_workspace(r, camera, min(r.grad_chunk, len(part)))
     rec, drec, gs = r.pool.records, r.pool.derivative_records, r.gaussians
     n = len(part)
@@ -44,32 +45,34 @@ def derivative_images(r, camera: Camera, part: list[Pose], background) -> Deriva
     tx, ty = ws.tiles
     masks = r.pool.pixel_masks() if r.grad_masks else r.pool.placeholder(ti.u64)
     derivative_images_kernel(r.config, r.grad_masks)(
-        gs.means, gs.cov3d, ws.viewmats, ws.intrin, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
+        gs.means, gs.cov3d, ws.viewmats, ws.cams, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
         rec.packed, ws.tile_start, r.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb, g.alpha,
         g.drgb)
     return g
 
 
-def render_derivatives(r, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
-    """Colour [B, H, W, 3], alpha [B, H, W] and d colour / d xi [B, H, W, 3, 6] of each pose (float32)."""
+def render_derivatives(r, camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+    """Colour [B, H, W, 3], alpha [B, H, W] and d colour / d xi [B, H, W, 3, 6] of each pose (float32);
+    ``camera``: one, or one per pose (one image size)."""
     rgbs, alphas, ders = [], [], []
-    for part in r._chunks(poses, r.grad_chunk):
-        g = derivative_images(r, camera, part, background)
+    for cams, part in r._chunks(camera, poses, r.grad_chunk):
+        g = derivative_images(r, cams, part, background)
         n = len(part)
+        camera = cams[0]
         rgbs.append(read_rows(g.rgb, n))
         alphas.append(read_rows(g.alpha, n))
         ders.append(read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
     return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
 
 
-def pose_gradient(r, camera: Camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+def pose_gradient(r, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
                   query_index=None):
     """cs cost [B], its gradient [B, 6] and Gauss-Newton Hessian [B, 6, 6] in ``xi`` (float64) of each pose
     against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] at slot ``query_index`` [B] (None: 0)."""
     costs, grads, hessians = [], [], []
     iu = np.triu_indices(NXI)
-    for part, qi in r._query_parts(poses, query_index, r.grad_chunk):
-        g = derivative_images(r, camera, part, background)
+    for cams, part, qi in r._query_parts(camera, poses, query_index, r.grad_chunk):
+        g = derivative_images(r, cams, part, background)
         n = len(part)
         if g.window is None:
             g.window = WindowGradBuffers.allocate(*g.alpha.shape)

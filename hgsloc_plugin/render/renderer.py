@@ -14,7 +14,7 @@ import numpy as np
 import taichi as ti
 
 from ..backend import current_arch
-from ..camera import Camera
+from ..camera import Camera, pose_cameras
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
 from ..kernels.layout import Stat
@@ -163,21 +163,24 @@ class Renderer:
         """Poses per launch."""
         return max(1, self.config.max_batch_elements // self.n)
 
-    def _chunks(self, poses: list[Pose], size: int | None = None):
-        """Consecutive parts of ``poses`` of at most ``size`` (default: ``chunk``) poses."""
+    def _chunks(self, camera: Camera | Sequence[Camera], poses: list[Pose], size: int | None = None):
+        """(cameras, poses) of consecutive parts of at most ``size`` (default: ``chunk``) poses, a camera per pose
+        (:func:`pose_cameras`)."""
+        cams = pose_cameras(camera, len(poses))
         c = size or self.chunk
         for s in range(0, len(poses), c):
-            yield poses[s:s + c]
+            yield cams[s:s + c], poses[s:s + c]
 
-    def _query_parts(self, poses: list[Pose], query_index, size: int | None = None):
-        """(poses, device query slots) of consecutive parts of at most ``size`` (default: ``chunk``) poses;
-        ``query_index`` [B] (None: every pose against slot 0)."""
+    def _query_parts(self, camera: Camera | Sequence[Camera], poses: list[Pose], query_index,
+                     size: int | None = None):
+        """(cameras, poses, device query slots) of consecutive parts of at most ``size`` (default: ``chunk``)
+        poses; ``query_index`` [B] (None: every pose against slot 0)."""
         qi = np.zeros(len(poses), np.int32) if query_index is None else np.asarray(query_index, np.int32)
         if qi.shape != (len(poses),):
             raise ValueError(f"query_index must be [{len(poses)}] (one slot per pose), got {qi.shape}")
         c = size or self.chunk
-        for s in range(0, len(poses), c):
-            yield poses[s:s + c], self.pool.query_index(qi[s:s + c])
+        for (cams, part), s in zip(self._chunks(camera, poses, c), range(0, len(poses), c)):
+            yield cams, part, self.pool.query_index(qi[s:s + c])
 
     def _workspace(self, camera: Camera, batch: int, grad: bool = False) -> Workspace:
         """The buffers for up to ``batch`` poses at ``camera``'s size and tiling (``grad``: the derivative pass's,
@@ -193,10 +196,11 @@ class Renderer:
         self.pool.projection_records(ws.batch, self.n, self.sort_mode == "parallel")
         return ws
 
-    def _geometry(self, camera: Camera, poses: list[Pose], ws: Workspace, background) -> None:
-        """Projection and tile sort for up to ``ws.batch`` poses, binned at the workspace's tile size, into the
-        pool's records and tile lists."""
+    def _geometry(self, camera: Camera | Sequence[Camera], poses: list[Pose], ws: Workspace, background) -> None:
+        """Projection and tile sort for up to ``ws.batch`` poses (``camera``: one, or one per pose of one size),
+        binned at the workspace's tile size, into the pool's records and tile lists."""
         B = len(poses)
+        cams = pose_cameras(camera, B)
         rec = self.pool.records
         g = self.gaussians
         vm = np.zeros((ws.batch, 4, 4), np.float32)
@@ -204,16 +208,23 @@ class Renderer:
             vm[k, :3] = T.matrix34()
             vm[k, 3, :3] = T.centre()
         ws.upload("viewmats", vm)
-        ws.upload("intrin", np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float32))
-        ws.upload("extent", np.array([cull.extent_coefficient(*cull.jacobian_limits(camera)),
-                                      cull.extent_pixels(self.config) / min(camera.fx, camera.fy)], np.float32))
+        intrin = np.zeros((ws.batch, 4), np.float32)
+        extent = np.zeros((ws.batch, 2), np.float32)
+        for k, c in enumerate(cams):
+            intrin[k] = c.fx, c.fy, c.cx, c.cy
+            extent[k] = (cull.extent_coefficient(*cull.jacobian_limits(c)),
+                         cull.extent_pixels(self.config) / min(c.fx, c.fy))
+        ws.upload("intrin", intrin)
+        ws.upload("extent", extent)
+        camera = cams[0]  # the image size
         ws.upload("background", np.asarray(background, np.float32).reshape(3))
         tx, ty = ws.tiles
         parallel = self.sort_mode == "parallel"
         # the serial sort's totals: counted by the projection into a host array, back with its launch
         totals = self.pool.placeholder(ti.i64) if parallel else np.zeros(B, np.int64)
         self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
-                      camera.height, ws.tile, B, ws.extent, rec.depth, rec.rect, rec.ntiles, rec.packed, totals)
+                      camera.height, ws.tile, B, ws.extent, ws.cams, rec.depth, rec.rect, rec.ntiles, rec.packed,
+                      totals)
         if parallel:
             totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, rec.offsets, B, self.n, tx, tx * ty,
                                   lambda m: self.pool.tile_lists(m, parallel=True), self.pool.radix_scratch(),
@@ -228,33 +239,36 @@ class Renderer:
 
     # ---- images and costs ----
 
-    def _images_ready(self, camera: Camera, part: list[Pose], background, batch: int) -> tuple[Workspace, tuple]:
-        """Geometry of up to one chunk of poses, into a workspace whose image buffers exist (``ws.images``), and
-        the arguments an image blend starts with (``blend.image_func``'s, up to the number of poses).
-        ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
+    def _images_ready(self, cams: list[Camera], part: list[Pose], background, batch: int
+                      ) -> tuple[Workspace, tuple]:
+        """Geometry of up to one chunk of poses (a camera each, one size), into a workspace whose image buffers
+        exist (``ws.images``), and the arguments an image blend starts with (``blend.image_func``'s, up to the
+        number of poses). ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
+        camera = cams[0]
         ws = self._workspace(camera, batch)
         if ws.images is None:
             ws.images = ImageBuffers.allocate(ws.batch, camera.height, camera.width)
-        self._geometry(camera, part, ws, background)
+        self._geometry(cams, part, ws, background)
         tx, ty = ws.tiles
         return ws, (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background,
                     tx, ty, len(part))
 
-    def visible(self, camera: Camera, poses: list[Pose]) -> np.ndarray:
+    def visible(self, camera: Camera | Sequence[Camera], poses: list[Pose]) -> np.ndarray:
         """Which Gaussians the projection keeps (touch at least one tile) for each pose: bool [B, n], in the
         order of ``source_index`` (scene indices)."""
         out = []
-        for part in self._chunks(poses):
-            ws = self._workspace(camera, min(len(poses), self.chunk))
-            self._geometry(camera, part, ws, (0.0, 0.0, 0.0))
+        for cams, part in self._chunks(camera, poses):
+            ws = self._workspace(cams[0], min(len(poses), self.chunk))
+            self._geometry(cams, part, ws, (0.0, 0.0, 0.0))
             out.append(read_rows(self.pool.records.ntiles, len(part)) > 0)
         return np.concatenate(out)
 
-    def render_full(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
-        """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy)."""
+    def render_full(self, camera: Camera | Sequence[Camera], poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W] and accumulated depth [B, H, W] (float32 numpy). ``camera``: one,
+        or one per pose (one image size; so for every method here)."""
         rgbs, alphas, depths = [], [], []
-        for part in self._chunks(poses):
-            ws, head = self._images_ready(camera, part, background, min(len(poses), self.chunk))
+        for cams, part in self._chunks(camera, poses):
+            ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
             image_kernel(self.config, self.blend_mode == "splat")(*head, im.rgb, im.alpha, im.dimg)
             n = len(part)
@@ -294,7 +308,8 @@ class Renderer:
             copy(q, 0, out, k)
         return out
 
-    def window_cost(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
+    def window_cost(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,
+                    background=(0.0, 0.0, 0.0),
                     mask_alpha: float = 0.0, luminance: bool = False, query_index=None) -> np.ndarray:
         """Windowed structural similarity of each pose's rendering with the query: [B, 2] float64, the sum over
         valid pixels of the per-pixel value (``cs``, or full SSIM when ``luminance``) and the valid pixel count.
@@ -304,38 +319,39 @@ class Renderer:
             query_index: [B] each pose's query slot in ``qstats`` (default: all 0). A pose's numbers do not depend
                 on the other poses of the call.
         """
-        _check_query_size(qstats, camera)
         out = []
-        for part, qi in self._query_parts(poses, query_index):
-            ws, head = self._images_ready(camera, part, background, min(len(poses), self.chunk))
+        for cams, part, qi in self._query_parts(camera, poses, query_index):
+            _check_query_size(qstats, cams[0])
+            ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
             if ws.window is None:
-                ws.window = WindowBuffers.allocate(ws.batch, camera.height, camera.width)
+                ws.window = WindowBuffers.allocate(ws.batch, cams[0].height, cams[0].width)
             sums = np.empty((len(part), 2), np.float64)
             window.window_cost_kernel(self.config, self.blend_mode == "splat", bool(luminance))(
                 *head, im.rgb, im.alpha, im.dimg, qstats, qi, float(mask_alpha), ws.window.h, ws.window.rows, sums)
             out.append(sums)
         return np.concatenate(out)
 
-    def cost_stats(self, camera: Camera, poses: list[Pose], target: ti.Ndarray, background=(0.0, 0.0, 0.0),
-                   mask_alpha: float = 0.0) -> np.ndarray:
+    def cost_stats(self, camera: Camera | Sequence[Camera], poses: list[Pose], target: ti.Ndarray,
+                   background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0) -> np.ndarray:
         """Photometric statistics of each pose's rendering against ``target``: [B, Stat.SIZE] float64
         (``kernels.layout.Stat``: n_valid, SAD, SSD, per-channel sums).
 
         Args:
             target: the comparison image from :meth:`upload_image`, at the camera's size.
         """
-        if tuple(target.shape) != (camera.height, camera.width, 3):
-            raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
-                             f"({camera.height}, {camera.width}, 3)")
         out = []
-        for part in self._chunks(poses):
+        for cams, part in self._chunks(camera, poses):
+            camera = cams[0]
+            if tuple(target.shape) != (camera.height, camera.width, 3):
+                raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
+                                 f"({camera.height}, {camera.width}, 3)")
             ws = self._workspace(camera, min(len(poses), self.chunk))
             tx, ty = ws.tiles
             if ws.stats is None:
                 rows = ty if self.blend_mode == "splat" else camera.height
                 ws.stats = StatBuffers(ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE)))
-            self._geometry(camera, part, ws, background)
+            self._geometry(cams, part, ws, background)
             head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
             if self.blend_mode == "splat":
                 self._blend_cost(*head, ty, len(part), target, float(mask_alpha), ws.stats.runs)
@@ -355,17 +371,17 @@ class Renderer:
         depend on the others of its launch."""
         return max(1, min(32 if current_arch() == "cuda" else 4, 4_000_000 // self.n))
 
-    def render_derivatives(self, camera: Camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+    def render_derivatives(self, camera: Camera | Sequence[Camera], poses: list[Pose], background=(0.0, 0.0, 0.0)):
         """Colour [B, H, W, 3], alpha [B, H, W] and the colour's derivatives [B, H, W, 3, 6] with respect to the
         pose increment ``xi = (w, v)`` (``Pose.perturbed_in_camera(w, v)``)."""
         return derivatives.render_derivatives(self, camera, poses, background)
 
-    def pose_gradient(self, camera: Camera, poses: list[Pose], qstats: ti.Ndarray, background=(0.0, 0.0, 0.0),
-                      mask_alpha: float = 0.0, query_index=None):
+    def pose_gradient(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,
+                      background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0, query_index=None):
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
         grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
         :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
-        _check_query_size(qstats, camera)
+        _check_query_size(qstats, pose_cameras(camera, len(poses))[0] if poses else camera)
         return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
 
 

@@ -36,6 +36,8 @@ from .backend import default_union_limit
 from .camera import Camera
 from .render.renderer import Renderer
 
+#: unions of working sets a :class:`Lockstep` keeps for the next rounds (each a copy of its Gaussians on the device)
+UNIONS_KEPT = 4
 #: the batched calls, and how each one's keyword values are read from its arguments
 _BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
 
@@ -210,8 +212,8 @@ class Lockstep:
 
     def _union(self, targets: list[Renderer]) -> Renderer | None:
         """The renderer of the union of ``targets``' Gaussians (``Renderer.union``), or None when it holds
-        more than ``union_limit`` times the largest's (the last few are kept: the groups of a batch repeat until
-        a query selects a new working set)."""
+        more than ``union_limit`` times the largest's (the last ``UNIONS_KEPT`` are kept: the groups of a batch
+        repeat until a query selects a new working set, and each union holds a copy of its Gaussians)."""
         key = tuple(sorted(id(t) for t in targets))
         hit = self._unions.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], sorted(targets, key=id))):
@@ -219,7 +221,7 @@ class Lockstep:
         union = targets[0].root.union(targets) if self.union_limit > 1.0 else None
         if union is not None and union.n > self.union_limit * max(t.n for t in targets):
             union = None
-        if len(self._unions) >= 16:
+        if len(self._unions) >= UNIONS_KEPT:
             self._unions.clear()
         self._unions[key] = (sorted(targets, key=id), union)  # the references keep the ids unique while cached
         return union

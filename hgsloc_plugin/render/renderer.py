@@ -208,12 +208,16 @@ class Renderer:
             vm[k, :3] = T.matrix34()
             vm[k, 3, :3] = T.centre()
         ws.upload("viewmats", vm)
-        intrin = np.zeros((ws.batch, 4), np.float32)
-        extent = np.zeros((ws.batch, 2), np.float32)
-        for k, c in enumerate(cams):
-            intrin[k] = c.fx, c.fy, c.cx, c.cy
-            extent[k] = (cull.extent_coefficient(*cull.jacobian_limits(c)),
-                         cull.extent_pixels(self.config) / min(c.fx, c.fy))
+        # every row of the workspace filled (rows past the last pose repeat the first camera), so that calls of
+        # one camera with any number of poses upload the same bytes: once per query, not once per batch size
+        distinct = list(dict.fromkeys(cams))
+        rows = {c: ([c.fx, c.fy, c.cx, c.cy], [cull.extent_coefficient(*cull.jacobian_limits(c)),
+                                               cull.extent_pixels(self.config) / min(c.fx, c.fy)]) for c in distinct}
+        intrin = np.tile(np.array(rows[cams[0]][0], np.float32), (ws.batch, 1))
+        extent = np.tile(np.array(rows[cams[0]][1], np.float32), (ws.batch, 1))
+        if len(distinct) > 1:
+            for k, c in enumerate(cams):
+                intrin[k], extent[k] = rows[c]
         ws.upload("intrin", intrin)
         ws.upload("extent", extent)
         camera = cams[0]  # the image size

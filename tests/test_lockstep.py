@@ -71,7 +71,7 @@ def test_stacked_queries_score_each_pose_as_its_own_launch():
 def test_poses_of_other_intrinsics_render_as_their_own_launches():
     """A call with a camera per pose (intrinsics differ, one image size) gives every pose the image, cost,
     gradient and Gauss-Newton matrix of a call with its own camera, bit for bit; the cameras matter (swapped,
-    they differ); mixed sizes or a wrong count are refused."""
+    they differ); mixed sizes, a wrong count or query statistics of another size are refused."""
     scene, cam, images, poses = _stack_case()
     r = get_renderer(scene)
     other = hp.Camera(48, 40, 56.0, 53.0, 23.0, 21.5)
@@ -91,6 +91,10 @@ def test_poses_of_other_intrinsics_render_as_their_own_launches():
         r.window_cost([cam, hp.Camera(40, 40, 50.0, 50.0, 20.0, 20.0)], poses[0], q)
     with pytest.raises(ValueError, match="one per pose"):
         r.window_cost([cam], poses[0], q)
+    small = r.upload_window_query(images[0][:20, :24])
+    for call in (r.window_cost, r.pose_gradient):  # query statistics of another size than the cameras'
+        with pytest.raises(ValueError, match="query statistics"):
+            call(cams, flat, small)
 
 
 def test_stacking_rejects_mixed_sizes():

@@ -385,7 +385,8 @@ class Renderer:
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
         grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
         :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
-        _check_query_size(qstats, pose_cameras(camera, len(poses))[0] if poses else camera)
+        for cam in pose_cameras(camera, len(poses))[:1]:  # one image size for all (checked there)
+            _check_query_size(qstats, cam)
         return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
 
 

@@ -124,3 +124,8 @@ def pose_cameras(camera: Camera | Sequence[Camera], n: int) -> list[Camera]:
         raise ValueError(f"the cameras of one call must share one image size, got "
                          f"{sorted({(c.width, c.height) for c in cams})}")
     return cams
+
+
+def size_camera(camera: Camera | Sequence[Camera]) -> Camera | None:
+    """The camera giving a call's image size: ``camera``, or the first of one per pose (None: no pose)."""
+    return camera if isinstance(camera, Camera) else next(iter(camera), None)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import copy
 import inspect
 import threading
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
@@ -204,9 +205,7 @@ class Lockstep:
         union = next(iter(targets.values())) if len(targets) == 1 else self._union(list(targets.values()))
         if union is not None:
             return group, union
-        count: dict[int, int] = {}
-        for s in group:
-            count[id(s.request[0])] = count.get(id(s.request[0]), 0) + 1
+        count = Counter(id(s.request[0]) for s in group)
         best = max(count, key=count.get)  # max keeps the first of equal counts
         return [s for s in group if id(s.request[0]) == best], targets[best]
 
@@ -214,17 +213,13 @@ class Lockstep:
         """The renderer of the union of ``targets``' Gaussians (``Renderer.union``), or None when it holds
         more than ``union_limit`` times the largest's (the last ``UNIONS_KEPT`` are kept: the groups of a batch
         repeat until a query selects a new working set, and each union holds a copy of its Gaussians)."""
-        key = tuple(sorted(id(t) for t in targets))
-        hit = self._unions.get(key)
-        if hit is not None and all(a is b for a, b in zip(hit[0], sorted(targets, key=id))):
-            return hit[1]
-        union = targets[0].root.union(targets) if self.union_limit > 1.0 else None
-        if union is not None and union.n > self.union_limit * max(t.n for t in targets):
-            union = None
-        if len(self._unions) >= UNIONS_KEPT:
-            self._unions.clear()
-        self._unions[key] = (sorted(targets, key=id), union)  # the references keep the ids unique while cached
-        return union
+        def make() -> Renderer | None:
+            if not self.union_limit > 1.0:
+                return None
+            union = targets[0].root.union(targets)
+            return union if union.n <= self.union_limit * max(t.n for t in targets) else None
+
+        return _kept_by_identity(self._unions, sorted(targets, key=id), UNIONS_KEPT, make)
 
     def _launch(self, group: list[_Slot], target: Renderer) -> None:
         """One launch for the calls of ``group`` (same map, method, image size and settings) on ``target`` (their
@@ -254,15 +249,22 @@ class Lockstep:
     def _stacked(self, target, stats: list):
         """The queries' statistics stacked in one device array (the last few stacks are kept: a lockstep batch
         meets the same groups step after step)."""
-        key = tuple(id(q) for q in stats)
-        hit = self._stacks.get(key)
-        if hit is not None and all(a is b for a, b in zip(hit[0], stats)):
-            return hit[1]
-        if len(self._stacks) >= 16:
-            self._stacks.clear()
-        stacked = target.stack_window_queries(stats)
-        self._stacks[key] = (stats, stacked)  # the references keep the ids unique while cached
-        return stacked
+        return _kept_by_identity(self._stacks, stats, 16, lambda: target.stack_window_queries(stats))
+
+
+def _kept_by_identity(cache: dict, objects: list, size: int, make: Callable[[], object]):
+    """``make()``'s value for ``objects`` (these very objects, in this order), from ``cache`` when it holds it;
+    a new value is kept there, the cache emptied first when it holds ``size``. The cache keeps references to the
+    objects, so their ids stay unique while their entry lives."""
+    key = tuple(id(o) for o in objects)
+    hit = cache.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], objects)):
+        return hit[1]
+    if len(cache) >= size:
+        cache.clear()
+    value = make()
+    cache[key] = (list(objects), value)
+    return value
 
 
 def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, dict | None]:

@@ -14,7 +14,7 @@ import numpy as np
 import taichi as ti
 
 from ..backend import current_arch
-from ..camera import Camera, pose_cameras
+from ..camera import Camera, pose_cameras, size_camera
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
 from ..kernels.layout import Stat
@@ -26,6 +26,9 @@ from ..scene import GaussianScene
 from . import derivatives
 from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, read_rows, sort_mode
 from .prepare import DeviceGaussians, upload
+
+#: the share of the Gaussians from which a selection (a working set, a union of them) is rendered from the whole map
+NEARLY_ALL = 0.95
 
 
 class Renderer:
@@ -97,8 +100,7 @@ class Renderer:
             raise ValueError("union: every renderer must be a subset of this one")
         if any(r is self for r in renderers):
             return self
-        idx = functools.reduce(np.union1d, [r._root_index for r in renderers]).astype(np.int32)
-        return self if idx.size >= 0.95 * self.n else self.subset(idx)
+        return self._selection(functools.reduce(np.union1d, [r._root_index for r in renderers]).astype(np.int32))
 
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float, max_rotation_deg: float
                     ) -> Renderer:
@@ -121,10 +123,12 @@ class Renderer:
                                       upload(np.array(rows, np.float64), ti.f64),
                                       upload(np.array(fac, np.float64), ti.f64), float(max_shift),
                                       float(np.radians(max_rotation_deg)), keep)
-        idx = np.flatnonzero(keep.to_numpy()).astype(np.int32)
-        if idx.size >= 0.95 * self.n or idx.size == 0:
-            return self
-        return self.subset(idx)
+        return self._selection(np.flatnonzero(keep.to_numpy()).astype(np.int32))
+
+    def _selection(self, idx: np.ndarray) -> Renderer:
+        """A renderer of the resident Gaussians ``idx`` [M] (increasing), or this one when they are nearly all
+        (``NEARLY_ALL`` of them) or none: a subset pays only where it drops a good share."""
+        return self if idx.size >= NEARLY_ALL * self.n or idx.size == 0 else self.subset(idx)
 
     def subset(self, idx: np.ndarray) -> Renderer:
         """A renderer of the resident Gaussians ``idx`` [M] (increasing resident indices), gathered on the
@@ -313,8 +317,8 @@ class Renderer:
         return out
 
     def window_cost(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,
-                    background=(0.0, 0.0, 0.0),
-                    mask_alpha: float = 0.0, luminance: bool = False, query_index=None) -> np.ndarray:
+                    background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0, luminance: bool = False,
+                    query_index=None) -> np.ndarray:
         """Windowed structural similarity of each pose's rendering with the query: [B, 2] float64, the sum over
         valid pixels of the per-pixel value (``cs``, or full SSIM when ``luminance``) and the valid pixel count.
 
@@ -323,9 +327,9 @@ class Renderer:
             query_index: [B] each pose's query slot in ``qstats`` (default: all 0). A pose's numbers do not depend
                 on the other poses of the call.
         """
+        _check_query_size(qstats, camera)
         out = []
         for cams, part, qi in self._query_parts(camera, poses, query_index):
-            _check_query_size(qstats, cams[0])
             ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
             if ws.window is None:
@@ -344,16 +348,16 @@ class Renderer:
         Args:
             target: the comparison image from :meth:`upload_image`, at the camera's size.
         """
+        size = size_camera(camera)
+        if size is not None and tuple(target.shape) != (size.height, size.width, 3):
+            raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
+                             f"({size.height}, {size.width}, 3)")
         out = []
         for cams, part in self._chunks(camera, poses):
-            camera = cams[0]
-            if tuple(target.shape) != (camera.height, camera.width, 3):
-                raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
-                                 f"({camera.height}, {camera.width}, 3)")
-            ws = self._workspace(camera, min(len(poses), self.chunk))
+            ws = self._workspace(cams[0], min(len(poses), self.chunk))
             tx, ty = ws.tiles
             if ws.stats is None:
-                rows = ty if self.blend_mode == "splat" else camera.height
+                rows = ty if self.blend_mode == "splat" else cams[0].height
                 ws.stats = StatBuffers(ti.ndarray(ti.f32, (ws.batch, rows, tx, Stat.SIZE)))
             self._geometry(cams, part, ws, background)
             head = (self.pool.records.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, ws.background, tx)
@@ -385,12 +389,12 @@ class Renderer:
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
         grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
         :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
-        for cam in pose_cameras(camera, len(poses))[:1]:  # one image size for all (checked there)
-            _check_query_size(qstats, cam)
+        _check_query_size(qstats, camera)
         return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
 
 
-def _check_query_size(qstats, camera: Camera) -> None:
-    if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
+def _check_query_size(qstats, camera: Camera | Sequence[Camera]) -> None:
+    camera = size_camera(camera)
+    if camera is not None and (len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width)):
         raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs "
                          f"(Q, {camera.height}, {camera.width}, 3, {window.NQ})")

@@ -36,30 +36,48 @@ HEADER = ("| case | Gaussians rendered | size | render (ms) | pass, masks (ms) |
           "pass in render-times: masks / none | speed-up | same numbers |\n|---|---|---|---|---|---|---|---|---|")
 
 
-def renderer_for(scene, bg, masks: bool, plan_args):
-    """The renderer a refinement of ``plan_args``' query uses (the working set covering its prior on large maps),
-    with or without the pixel masks; and the plan."""
-    raster = hp.RasterConfig(grad_masks="on" if masks else "off")
+def renderer_for(scene, bg, raster: hp.RasterConfig, plan_args):
+    """The renderer a refinement of ``plan_args``' query uses (the working set covering its prior on large maps)
+    with the rasterizer settings ``raster``; and the plan."""
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     plan = make_plan(refiner.config, scene, *plan_args, hp.QueryPrior())
     r = refiner._working_set(plan)
     return (r.covering([plan.coarse_pose]) if hasattr(r, "covering") else r), plan
 
 
-def rows(case: str, repeats: int) -> list[str]:
+def compared_rows(case: str, repeats: int, rasters: tuple[hp.RasterConfig, hp.RasterConfig], size_row) -> list[str]:
+    """``size_row(case, a, b, camera, image, poses, background)`` per scoring size of ``case``'s first query, ``a``
+    and ``b`` its renderers with the two ``rasters``; ``poses``: ``repeats`` about one pixel around the true one."""
     loaded = load(case)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
         return []
     cam, scene, qs, bg = loaded
-    _, truth, image, depth = qs[0]
-    with_masks, plan = renderer_for(scene, bg, True, (cam, truth))
-    without, _ = renderer_for(scene, bg, False, (cam, truth))
+    _, truth, image, _ = qs[0]
+    a, plan = renderer_for(scene, bg, rasters[0], (cam, truth))
+    b, _ = renderer_for(scene, bg, rasters[1], (cam, truth))
     rng = np.random.default_rng(3)
     f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
     poses = [se3_noise(truth, np.degrees(1.0 / f), plan.depth / f, rng) for _ in range(repeats)]
-    return [size_row(case, with_masks, without, c, image, poses, bg)
+    return [size_row(case, a, b, c, image, poses, bg)
             for c in dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish])]
+
+
+def rows(case: str, repeats: int) -> list[str]:
+    return compared_rows(case, repeats, (hp.RasterConfig(grad_masks="on"), hp.RasterConfig(grad_masks="off")),
+                         size_row)
+
+
+def median_ms(calls: dict, poses: list) -> dict:
+    """Per key of ``calls`` (each a function of one pose), its median time in ms over ``poses``, the calls made
+    in turn on each pose (so that a slow stretch of a shared machine falls on all of them)."""
+    times: dict = {k: [] for k in calls}
+    for p in poses:
+        for k, fn in calls.items():
+            t0 = time.perf_counter()
+            fn(p)
+            times[k].append(time.perf_counter() - t0)
+    return {k: 1000 * float(np.median(v)) for k, v in times.items()}
 
 
 def size_row(case: str, with_masks, without, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:
@@ -71,13 +89,7 @@ def size_row(case: str, with_masks, without, cam: hp.Camera, image: np.ndarray, 
     calls = {"render": lambda p: with_masks.render_full(cam, [p], bg),
              "masks": lambda p: with_masks.pose_gradient(cam, [p], qa, bg),
              "none": lambda p: without.pose_gradient(cam, [p], qb, bg)}
-    times: dict[str, list[float]] = {k: [] for k in calls}
-    for p in poses:
-        for k, fn in calls.items():
-            t0 = time.perf_counter()
-            fn(p)
-            times[k].append(time.perf_counter() - t0)
-    ms = {k: 1000 * float(np.median(v)) for k, v in times.items()}
+    ms = median_ms(calls, poses)
     row = (f"| {case} | {with_masks.n:,} | {cam.width}x{cam.height} | {ms['render']:.1f} | {ms['masks']:.1f} | "
            f"{ms['none']:.1f} | {ms['masks'] / ms['render']:.2f} / {ms['none'] / ms['render']:.2f} | "
            f"{ms['none'] / ms['masks']:.2f}x | {'yes' if same else 'NO'} |")
@@ -85,19 +97,25 @@ def size_row(case: str, with_masks, without, cam: hp.Camera, image: np.ndarray, 
     return row
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def table_main(doc: str, script: str, title: str, header: str, rows, repeats: int) -> None:
+    """The command line of a per-case, per-size timing table: ``--cases``, ``--repeats``, ``--out``; prints
+    ``header`` and ``rows(case, repeats)``'s rows, and writes them under ``title`` to ``--out`` (notes kept)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room", "room_x20"])
-    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--repeats", type=int, default=repeats)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     hp.init()
-    print(HEADER, flush=True)
+    print(header, flush=True)
     body = [r for case in a.cases for r in rows(case, a.repeats)]
     if a.out:
-        write_keeping_notes(Path(a.out), ["# Derivative pass (`benchmarks/derivative_pass.py`)", "",
-                                          "Regenerate: `python benchmarks/derivative_pass.py --out "
-                                          "benchmarks/derivative_pass.md`.", "", HEADER, *body])
+        write_keeping_notes(Path(a.out), [f"# {title} (`benchmarks/{script}`)", "",
+                                          f"Regenerate: `python benchmarks/{script} --out "
+                                          f"benchmarks/{Path(script).stem}.md`.", "", header, *body])
+
+
+def main() -> None:
+    table_main(__doc__, "derivative_pass.py", "Derivative pass", HEADER, rows, 15)
 
 
 if __name__ == "__main__":

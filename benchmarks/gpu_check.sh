@@ -4,7 +4,8 @@
 # compared, the throughput table on CUDA (queries per second, render-times per query, sequential and in lockstep
 # batches; the 7-Scenes-shaped job with 64 queries so that a batch of 32 fills; the densified room's batches
 # with their working sets' union up to the whole map, at most 2x and none: backend.DEFAULT_UNION_LIMIT), the
-# derivative pass with and without pixel masks and the map-scale table.
+# derivative pass with and without pixel masks, the tile lists binned by ellipse and by box, and the map-scale
+# table.
 # Usage (the package installed with its test extras, ../shared/data beside the repository):
 #   bash benchmarks/gpu_check.sh [OUT_DIR]        (about 5 minutes on an H100)
 set -u -o pipefail
@@ -25,6 +26,7 @@ HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 
 HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 2 \
     --out "$out/throughput_cuda_union2.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md" || status=1
+HGSLOC_ARCH=cuda python benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md" || status=1
 HGSLOC_ARCH=cuda python benchmarks/map_scale.py --paths "whole map, search" "working set, gradient first" \
     --out "$out/map_scale_cuda.md" || status=1
 exit $status

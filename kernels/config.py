@@ -29,6 +29,9 @@ class RasterConfig:
         sort: "serial" (each pose's radix and tile sort on one thread: the CPU layout), "parallel" (one tile key
             per Gaussian and tile, sorted by a device radix sort: the GPU layout; ``tile_sort.bin_parallel``) or
             "auto" (serial on CPU, parallel on CUDA). Same tile lists, entry for entry.
+        tile_test: which tiles a Gaussian is binned into: "ellipse" (the tiles of its box its alpha ellipse
+            reaches, ``footprint.py``: shorter lists, the same images), "box" (every tile of its box, as gsplat)
+            or "auto" (ellipse on CUDA, box on the CPU: ``footprint.uses_ellipse_tiles``).
         max_batch_elements: poses x Gaussians handled per launch; larger calls are split into chunks.
     """
 
@@ -44,6 +47,7 @@ class RasterConfig:
     radius_mode: str = "gsplat"
     blend: str = "auto"
     sort: str = "auto"
+    tile_test: str = "auto"
     max_batch_elements: int = 8_000_000
 
     def __post_init__(self) -> None:
@@ -57,6 +61,8 @@ class RasterConfig:
             raise ValueError(f"grad_masks='on' needs grad_tile_size <= 8 (64 pixels), got {self.grad_tile_size}")
         if self.sort not in ("auto", "serial", "parallel"):
             raise ValueError(f"sort must be 'auto', 'serial' or 'parallel', got {self.sort!r}")
+        if self.tile_test not in ("auto", "ellipse", "box"):
+            raise ValueError(f"tile_test must be 'auto', 'ellipse' or 'box', got {self.tile_test!r}")
         if not (0 < self.alpha_max <= 1):
             raise ValueError(f"alpha_max must be in (0, 1], got {self.alpha_max}")
         if self.tile_size <= 0 or self.grad_tile_size <= 0 or self.max_batch_elements <= 0:

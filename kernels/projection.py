@@ -11,6 +11,7 @@ import math
 import taichi as ti
 
 from .config import RasterConfig
+from .footprint import box_tile_mask, write_mask
 from .layout import Cam, Rec
 from .sh import make_sh_func
 from .tile_sort import count_tiles
@@ -82,8 +83,10 @@ def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
 
 
 @functools.cache
-def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
-    """Compiled projection kernel for one config and SH degree; ``count``: it also sums each pose's tile
+def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse_tiles: bool):
+    """Compiled projection kernel for one config and SH degree; ``ellipse_tiles``: bin each Gaussian into the
+    tiles its alpha ellipse reaches (else its whole box; ``footprint.uses_ellipse_tiles``); ``count``: it also
+    sums each pose's tile
     intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial sort; a host array: they
     come back with the launch), else ``totals`` is not touched. Each pose has its own camera (one image size):
     one launch renders the poses of queries of other intrinsics as their own launches would, bit for bit.
@@ -96,8 +99,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
         (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f for each pose's camera: the bound of an
         early, conservative frustum test before the covariance);
         outputs: cams [B, Cam.SIZE] (each pose's camera record, ``layout.Cam``, also read by the derivative
-        pass), depth [B, N] (camera z, the sort key), rect [B, N, 4] (tile x0, y0, x1, y1; exclusive ends),
-        ntiles [B, N] (0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
+        pass), depth [B, N] (camera z, the sort key), rect [B, N, footprint.RECT_SIZE] (the tile box x0, y0,
+        x1, y1, exclusive ends, and the mask of its tiles the Gaussian reaches: ``footprint.py``), ntiles [B, N]
+        (tiles in the footprint; 0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
         (fields named in ``layout.Rec``).
     """
     eval_sh = make_sh_func(sh_degree)
@@ -198,6 +202,14 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
                 nt = (x1 - x0) * (y1 - y0)
                 if nt <= 0:
                     continue
+                ca = c11 * inv_det
+                cb = -c01 * inv_det
+                cc = c00 * inv_det
+                mask = ~ti.u64(0)
+                if ti.static(ellipse_tiles):  # only the box's tiles the alpha ellipse meets (footprint.py)
+                    mask, nt = box_tile_mask(mx, my, ca, cb, cc, lim, x0, y0, x1, y1, tile, width, height)
+                    if nt == 0:
+                        continue
                 depth[b, i] = z
                 d = p_w - ti.Vector([viewmats[b, 3, 0], viewmats[b, 3, 1], viewmats[b, 3, 2]])
                 d = d / ti.max(d.norm(), 1e-12)
@@ -205,9 +217,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
                 # one record per Gaussian, read by both blend kernels
                 packed[b, i, Rec.X] = mx
                 packed[b, i, Rec.Y] = my
-                packed[b, i, Rec.CA] = c11 * inv_det
-                packed[b, i, Rec.CB] = -c01 * inv_det
-                packed[b, i, Rec.CC] = c00 * inv_det
+                packed[b, i, Rec.CA] = ca
+                packed[b, i, Rec.CB] = cb
+                packed[b, i, Rec.CC] = cc
                 packed[b, i, Rec.OPACITY] = op
                 packed[b, i, Rec.LIM] = lim
                 packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
@@ -218,6 +230,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool):
                 rect[b, i, 1] = y0
                 rect[b, i, 2] = x1
                 rect[b, i, 3] = y1
+                write_mask(rect, b, i, mask)
                 ntiles[b, i] = nt
         if ti.static(count):
             count_tiles(ntiles, num_poses, n, totals)

@@ -4,7 +4,9 @@ Per pose: gather the visible Gaussians, sort them by depth with a stable LSD rad
 (depths are positive, so the bit pattern orders like the value), then a stable counting sort by tile id
 (count, prefix sum, scatter). Each tile's list therefore ends up in depth order, ties in index order, the
 same key order as gsplat's (tile | depth) sort. Each Gaussian's tile rectangle travels through the radix
-passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id.
+passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id; a
+Gaussian goes into the tiles of its footprint only (``footprint.py``: its box, or the box's tiles its ellipse
+meets).
 Poses are processed in parallel, each pose serially;
 this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
 ``tests/reference/render_torch.py::bin_tiles``.
@@ -24,6 +26,7 @@ import numpy as np
 import taichi as ti
 
 from .config import RasterConfig
+from .footprint import in_footprint, read_mask
 from .grain import item, spread
 from .radix import block_size, blocks, passes, scan_rows, sort_passes
 
@@ -51,7 +54,8 @@ def tile_sort_kernel(config: RasterConfig):
     """Compiled sorting kernel.
 
     Kernel arguments:
-        depth [B, >= N], rect [B, >= N, 4], ntiles [B, >= N], isect_base [B] (start of each pose in ``isect``),
+        depth [B, >= N], rect [B, >= N, footprint.RECT_SIZE], ntiles [B, >= N], isect_base [B] (start of each
+        pose in ``isect``),
         tiles_x, tiles_y, num_poses, num_gaussians N (a pooled workspace may hold more columns);
         scratch: keys_a, keys_b [B, N] u32, ids_a, ids_b [B, N] i32, rects [4, B, N] i32 (packed x and y tile
         ranges, two ping-pong pairs), hist [B, RADIX] i32, cursor [B, T] i32;
@@ -126,9 +130,13 @@ def tile_sort_kernel(config: RasterConfig):
                 for j in range(m):
                     rx = rects[2, b, j]
                     ry = rects[3, b, j]
+                    mask = read_mask(rect, b, ids_b[b, j])
+                    k = 0
                     for ty in range(ry & 0xFFFF, ry >> 16):
                         for tx in range(rx & 0xFFFF, rx >> 16):
-                            cursor[b, ty * tiles_x + tx] += 1
+                            if in_footprint(mask, k):
+                                cursor[b, ty * tiles_x + tx] += 1
+                            k += 1
                 acc2 = 0
                 for t in range(num_tiles):
                     c = cursor[b, t]
@@ -141,11 +149,15 @@ def tile_sort_kernel(config: RasterConfig):
                     g = ids_b[b, j]
                     rx = rects[2, b, j]
                     ry = rects[3, b, j]
+                    mask = read_mask(rect, b, g)
+                    k = 0
                     for ty in range(ry & 0xFFFF, ry >> 16):
                         for tx in range(rx & 0xFFFF, rx >> 16):
-                            t = ty * tiles_x + tx
-                            isect[base + cursor[b, t]] = g
-                            cursor[b, t] += 1
+                            if in_footprint(mask, k):
+                                t = ty * tiles_x + tx
+                                isect[base + cursor[b, t]] = g
+                                cursor[b, t] += 1
+                            k += 1
 
     return tile_sort
 
@@ -153,19 +165,24 @@ def tile_sort_kernel(config: RasterConfig):
 @ti.func
 def write_keys(depth: ti.template(), rect: ti.template(), ntiles: ti.template(), offsets: ti.template(), tiles_x,
                num_tiles, num_poses, num_gaussians, keys: ti.template(), ids: ti.template()):
-    """Parallel binning, step 1 (one thread per pose and Gaussian): depth [B, >= N] f32, rect [B, >= N, 4] i32
-    (x0, y0, x1, y1 tile ranges), ntiles [B, >= N] i32, offsets [B * N] i64 (exclusive prefix sum of ntiles over
-    pose-major (pose, Gaussian)) -> keys [>= M] i64 ``(pose * num_tiles + tile) << 32 | depth bits`` (depths are
-    positive, so their bits order like the values) and ids [>= M] i32 (Gaussian index), M = the sum of ntiles."""
+    """Parallel binning, step 1 (one thread per pose and Gaussian): depth [B, >= N] f32, rect
+    [B, >= N, footprint.RECT_SIZE] i32 (tile box and footprint mask), ntiles [B, >= N] i32, offsets [B * N] i64
+    (exclusive prefix sum of ntiles over pose-major (pose, Gaussian)) -> keys [>= M] i64 ``(pose * num_tiles +
+    tile) << 32 | depth bits`` (depths are positive, so their bits order like the values) and ids [>= M] i32
+    (Gaussian index), M = the sum of ntiles: one key per tile of the Gaussian's footprint."""
     for b, i in ti.ndrange(num_poses, num_gaussians):
         if ntiles[b, i] > 0:
             k = ti.cast(offsets[b * num_gaussians + i], ti.i32)
             low = ti.cast(ti.bit_cast(depth[b, i], ti.i32), ti.i64)
+            mask = read_mask(rect, b, i)
+            q = 0
             for ty in range(rect[b, i, 1], rect[b, i, 3]):
                 for tx in range(rect[b, i, 0], rect[b, i, 2]):
-                    keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
-                    ids[k] = i
-                    k += 1
+                    if in_footprint(mask, q):
+                        keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
+                        ids[k] = i
+                        k += 1
+                    q += 1
 
 
 @ti.func
@@ -232,7 +249,7 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
     """Tile lists of ``num_poses`` poses by a parallel key sort, every step a Taichi kernel.
 
     Args:
-        depth [B, >= N] f32, rect [B, >= N, 4] i32, ntiles [B, >= N] i32: the projection's outputs.
+        depth [B, >= N] f32, rect [B, >= N, footprint.RECT_SIZE] i32, ntiles [B, >= N] i32: the projection's outputs.
         offsets: int64 [>= B * N + 1] scratch (the exclusive prefix sum of ``ntiles``, pose-major).
         lists: ``lists(M)`` -> buffers with ``keys`` / ``keys_tmp`` (int64) and ``ids`` / ``ids_tmp`` (int32) of at
             least M entries; its ``isect`` is set to the buffer that ends up holding the lists.

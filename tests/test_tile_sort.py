@@ -31,7 +31,7 @@ def test_parallel_lists_match_reference_binning():
     scene = random_scene(n=200, sh_degree=0, seed=3)
     cam = hp.Camera(48, 40, 40.0, 40.0, 24.0, 20.0)
     T = hp.Pose.identity()
-    _, r = renderers(scene)
+    _, r = renderers(scene, tile_test="box")  # the reference bins by box (CUDA's default is the ellipse)
     assert r.sort_mode == "parallel"
     r.render_full(cam, [T])
     starts, isect = lists(r, cam, 1)
@@ -186,3 +186,57 @@ def test_parallel_sort_with_nothing_in_view():
         starts, _ = lists(parallel, cam, len(poses))
         assert starts[poses.index(away), -1] == 0 and starts[:, -1].sum() == (0 if len(poses) == 1 else
                                                                             starts[0, -1] * 2)
+
+
+@pytest.mark.parametrize("sort", ["serial", "parallel"])
+def test_ellipse_footprint_drops_only_tiles_the_gaussian_cannot_reach(sort):
+    """``tile_test="ellipse"`` against ``"box"``: each tile's list is the box binning's without the Gaussians
+    whose alpha cannot reach ``alpha_min`` at any of the tile's pixel centres (float64 reference over every
+    pixel of the tile, from the records' conic and threshold), in the same order; images, windowed costs and
+    pose derivatives bit for bit."""
+    from hgsloc_plugin.kernels.layout import Rec
+
+    scene, cam, T = cost_case("room")
+    box, ell = (get_renderer(scene, hp.RasterConfig(sort=sort, tile_test=t)) for t in ("box", "ellipse"))
+    poses = [T, moved(T, 1, 0.004), moved(T, 5, -0.02)]
+    for a, b in zip(box.render_full(cam, poses), ell.render_full(cam, poses)):
+        np.testing.assert_array_equal(a, b)
+    (sa, ia), (sb, ib) = (lists(r, cam, len(poses)) for r in (box, ell))
+    packed = read_rows(box.pool.records.packed, len(poses)).astype(np.float64)
+    tile, tx = box.config.tile_size, -(-cam.width // box.config.tile_size)
+    kept = dropped = 0
+    base_a = base_b = 0
+    for p in range(len(poses)):
+        for t in range(sa.shape[1] - 1):
+            full = ia[base_a + sa[p, t]:base_a + sa[p, t + 1]]
+            part = ib[base_b + sb[p, t]:base_b + sb[p, t + 1]]
+            keep = np.isin(full, part)
+            np.testing.assert_array_equal(full[keep], part, err_msg=f"pose {p} tile {t}")
+            x0, y0 = (t % tx) * tile, (t // tx) * tile
+            px, py = np.meshgrid(np.arange(x0, min(x0 + tile, cam.width)) + 0.5,
+                                 np.arange(y0, min(y0 + tile, cam.height)) + 0.5)
+            rec = packed[p, full[~keep]]
+            dx = rec[:, Rec.X, None, None] - px
+            dy = rec[:, Rec.Y, None, None] - py
+            sigma = (0.5 * (rec[:, Rec.CA, None, None] * dx * dx + rec[:, Rec.CC, None, None] * dy * dy)
+                     + rec[:, Rec.CB, None, None] * dx * dy)
+            assert np.all(sigma.min(axis=(1, 2)) > rec[:, Rec.LIM]), f"pose {p} tile {t}: a reachable tile dropped"
+            kept, dropped = kept + len(part), dropped + int((~keep).sum())
+        base_a, base_b = base_a + sa[p, -1], base_b + sb[p, -1]
+    assert dropped > 0.05 * (kept + dropped), (kept, dropped)
+    img = degrade(hp.render(scene, cam, moved(T, 3, 0.02)), np.random.default_rng(0))
+    q = [r.upload_window_query(img) for r in (box, ell)]
+    np.testing.assert_array_equal(box.window_cost(cam, poses, q[0]), ell.window_cost(cam, poses, q[1]))
+    for a, b in zip(box.pose_gradient(cam, poses, q[0]), ell.pose_gradient(cam, poses, q[1])):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_tile_test_per_backend():
+    """auto: the ellipse on CUDA, the box on the CPU; a bad setting is refused."""
+    from hgsloc_plugin.kernels.footprint import uses_ellipse_tiles
+
+    auto = hp.RasterConfig()
+    assert uses_ellipse_tiles(auto, "cuda") and not uses_ellipse_tiles(auto, "cpu")
+    assert uses_ellipse_tiles(hp.RasterConfig(tile_test="ellipse"), "cpu")
+    with pytest.raises(ValueError, match="tile_test must be"):
+        hp.RasterConfig(tile_test="exact")

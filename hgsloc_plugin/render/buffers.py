@@ -12,6 +12,7 @@ import numpy as np
 import taichi as ti
 
 from ..kernels import window_grad
+from ..kernels.footprint import RECT_SIZE
 from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
@@ -44,7 +45,8 @@ class ProjectionRecords:
     """Per-Gaussian outputs of the projection and the tile sort, [B, n, ...]; one set serves every image size.
 
     Attributes:
-        depth [B, n]; rect [B, n, 4] (tile box); ntiles [B, n] (tiles touched; 0: culled); packed [B, n, Rec.SIZE]
+        depth [B, n]; rect [B, n, RECT_SIZE] (tile box and footprint mask, ``kernels/footprint.py``); ntiles
+        [B, n] (tiles in the footprint; 0: culled); packed [B, n, Rec.SIZE]
         (the blend's record per Gaussian); keys_a / keys_b / ids_a / ids_b [B, n] and rects [4, B, n]: the
         serial sort's scratch; offsets [B * n + 1]: the parallel sort's prefix sum of ``ntiles`` (None for the
         other sort).
@@ -66,7 +68,8 @@ class ProjectionRecords:
     @classmethod
     def allocate(cls, B: int, n: int, parallel: bool) -> ProjectionRecords:
         nd = ti.ndarray
-        common = (B, n, nd(ti.f32, (B, n)), nd(ti.i32, (B, n, 4)), nd(ti.i32, (B, n)), nd(ti.f32, (B, n, Rec.SIZE)))
+        common = (B, n, nd(ti.f32, (B, n)), nd(ti.i32, (B, n, RECT_SIZE)), nd(ti.i32, (B, n)),
+                  nd(ti.f32, (B, n, Rec.SIZE)))
         if parallel:
             return cls(*common, offsets=nd(ti.i64, (B * n + 1,)))
         return cls(*common, nd(ti.u32, (B, n)), nd(ti.u32, (B, n)), nd(ti.i32, (B, n)), nd(ti.i32, (B, n)),

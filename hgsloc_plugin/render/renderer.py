@@ -17,6 +17,7 @@ from ..backend import current_arch
 from ..camera import Camera, pose_cameras, size_camera
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
+from ..kernels.footprint import uses_ellipse_tiles
 from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
@@ -53,12 +54,11 @@ class Renderer:
         self.gaussians = DeviceGaussians.from_scene(scene)
         self.pool = Pool()
         self.sort_mode = sort_mode(self.config.sort, current_arch())
-        self._project = projection_kernel(self.config, self.sh_degree, count=self.sort_mode == "serial")
+        self._project = projection_kernel(self.config, self.sh_degree, count=self.sort_mode == "serial",
+                                          ellipse_tiles=uses_ellipse_tiles(self.config, current_arch()))
         self._sort = tile_sort_kernel(self.config)
-        mode = self.config.blend
-        if mode == "auto":
-            mode = "pixel" if current_arch() == "cuda" else "splat"
-        self.blend_mode = mode
+        auto_blend = "pixel" if current_arch() == "cuda" else "splat"
+        self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
         self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
         self._reduce = reduce_kernel()
         self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks

@@ -36,6 +36,7 @@ import taichi as ti
 
 from .blend import tile_range
 from .config import RasterConfig
+from .footprint import PIXEL_MARGIN, SIGMA_MARGIN
 from .grain import item, spread
 from .layout import Cam, Rec
 from .projection import camera_covariance, clamped_jacobian, view_rt
@@ -44,8 +45,6 @@ NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in dpacked (times NXI)
 NDER = 5 * NXI
 MASK_BITS = 64  # pixels of a tile a ``pixel_masks`` entry can describe (tiles of at most 8 x 8)
-SIGMA_MARGIN = 1e-3  # blend_grad's own margin on sigma <= LIM before the exact alpha test
-PIXEL_MARGIN = 0.1  # pixels added on each side of an ellipse row's span (f32 rounding of the bounds)
 
 
 def uses_masks(config: RasterConfig, arch: str) -> bool:
@@ -234,7 +233,7 @@ def blend_grad_func(config: RasterConfig, masked: bool):
                 cb = packed[b, g, Rec.CB]
                 cc = packed[b, g, Rec.CC]
                 sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                if sigma > packed[b, g, Rec.LIM] + 1e-3:
+                if sigma > packed[b, g, Rec.LIM] + SIGMA_MARGIN:
                     continue  # alpha < alpha_min for certain: skip the exponential (the exact test follows)
                 raw = packed[b, g, Rec.OPACITY] * ti.exp(-sigma)
                 alpha = ti.min(alpha_max, raw)

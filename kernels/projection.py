@@ -86,10 +86,10 @@ def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
 def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse_tiles: bool):
     """Compiled projection kernel for one config and SH degree; ``ellipse_tiles``: bin each Gaussian into the
     tiles its alpha ellipse reaches (else its whole box; ``footprint.uses_ellipse_tiles``); ``count``: it also
-    sums each pose's tile
-    intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial sort; a host array: they
-    come back with the launch), else ``totals`` is not touched. Each pose has its own camera (one image size):
-    one launch renders the poses of queries of other intrinsics as their own launches would, bit for bit.
+    sums each pose's tile intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial
+    sort; a host array: they come back with the launch), else ``totals`` is not touched. Each pose has its own
+    camera (one image size): one launch renders the poses of queries of other intrinsics as their own launches
+    would, bit for bit.
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest

@@ -84,13 +84,14 @@ def test_pixel_and_splat_blend_agree():
 
 def test_tile_lists_match_reference_binning():
     """The kernel's per-tile lists (ids and depth order) equal the reference binning (no exact depth ties here,
-    so the resident order does not matter)."""
+    so the resident order does not matter). The reference bins by box: so does the renderer here (CUDA's
+    default bins by ellipse, ``tests/test_tile_sort.py`` checks that)."""
     from hgsloc_plugin.render import get_renderer, read_rows
 
     scene = random_scene(n=200, sh_degree=0, seed=3)
     cam = hp.Camera(48, 40, 40.0, 40.0, 24.0, 20.0)
     T = hp.Pose.identity()
-    r = get_renderer(scene)
+    r = get_renderer(scene, hp.RasterConfig(tile_test="box"))
     r.render_full(cam, [T])
     ws = r._workspace(cam, 1)
     starts = read_rows(ws.tile_start, 1)[0]  # torch tensors with the parallel sort (CUDA)

@@ -89,18 +89,22 @@ def write_mask(rect: ti.template(), b, i, mask):
 
 
 @ti.func
-def read_mask(rect: ti.template(), b, i) -> ti.u64:
-    """The footprint mask of ``rect[b, i]``."""
-    lo = ti.cast(ti.cast(rect[b, i, 4], ti.u32), ti.u64)
-    hi = ti.cast(ti.cast(rect[b, i, 5], ti.u32), ti.u64)
-    return lo | (hi << ti.u64(32))
+def read_mask(rect: ti.template(), b, i, ellipse: ti.template()) -> ti.u64:
+    """The footprint mask of ``rect[b, i]``; without ``ellipse`` (binning by box) all ones, nothing read."""
+    mask = ~ti.u64(0)
+    if ti.static(ellipse):
+        lo = ti.cast(ti.cast(rect[b, i, 4], ti.u32), ti.u64)
+        hi = ti.cast(ti.cast(rect[b, i, 5], ti.u32), ti.u64)
+        mask = lo | (hi << ti.u64(32))
+    return mask
 
 
 @ti.func
-def in_footprint(mask, k) -> bool:
+def in_footprint(mask, k, ellipse: ti.template()) -> bool:
     """Whether the box's ``k``-th tile (row-major) is in the footprint ``mask`` (every tile past the 64th is:
-    such boxes carry all ones)."""
+    such boxes carry all ones); without ``ellipse``, every tile, a constant the compiler folds."""
     inside = True
-    if k < MASK_TILES:  # no shift by 64 or more
-        inside = (mask >> ti.cast(k, ti.u64)) & ti.u64(1) != ti.u64(0)
+    if ti.static(ellipse):
+        if k < MASK_TILES:  # no shift by 64 or more
+            inside = (mask >> ti.cast(k, ti.u64)) & ti.u64(1) != ti.u64(0)
     return inside

@@ -230,7 +230,8 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
                 rect[b, i, 1] = y0
                 rect[b, i, 2] = x1
                 rect[b, i, 3] = y1
-                write_mask(rect, b, i, mask)
+                if ti.static(ellipse_tiles):
+                    write_mask(rect, b, i, mask)
                 ntiles[b, i] = nt
         if ti.static(count):
             count_tiles(ntiles, num_poses, n, totals)

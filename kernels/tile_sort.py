@@ -50,8 +50,9 @@ def count_tiles(ntiles: ti.template(), num_poses, num_gaussians, totals: ti.temp
 
 
 @functools.cache
-def tile_sort_kernel(config: RasterConfig):
-    """Compiled sorting kernel.
+def tile_sort_kernel(config: RasterConfig, ellipse: bool):
+    """Compiled sorting kernel; ``ellipse``: each Gaussian into the tiles of its footprint mask (``footprint.py``,
+    the projection's ``ellipse_tiles``), else every tile of its box.
 
     Kernel arguments:
         depth [B, >= N], rect [B, >= N, footprint.RECT_SIZE], ntiles [B, >= N], isect_base [B] (start of each
@@ -130,11 +131,11 @@ def tile_sort_kernel(config: RasterConfig):
                 for j in range(m):
                     rx = rects[2, b, j]
                     ry = rects[3, b, j]
-                    mask = read_mask(rect, b, ids_b[b, j])
+                    mask = read_mask(rect, b, ids_b[b, j], ellipse)
                     k = 0
                     for ty in range(ry & 0xFFFF, ry >> 16):
                         for tx in range(rx & 0xFFFF, rx >> 16):
-                            if in_footprint(mask, k):
+                            if in_footprint(mask, k, ellipse):
                                 cursor[b, ty * tiles_x + tx] += 1
                             k += 1
                 acc2 = 0
@@ -149,11 +150,11 @@ def tile_sort_kernel(config: RasterConfig):
                     g = ids_b[b, j]
                     rx = rects[2, b, j]
                     ry = rects[3, b, j]
-                    mask = read_mask(rect, b, g)
+                    mask = read_mask(rect, b, g, ellipse)
                     k = 0
                     for ty in range(ry & 0xFFFF, ry >> 16):
                         for tx in range(rx & 0xFFFF, rx >> 16):
-                            if in_footprint(mask, k):
+                            if in_footprint(mask, k, ellipse):
                                 t = ty * tiles_x + tx
                                 isect[base + cursor[b, t]] = g
                                 cursor[b, t] += 1
@@ -164,21 +165,22 @@ def tile_sort_kernel(config: RasterConfig):
 
 @ti.func
 def write_keys(depth: ti.template(), rect: ti.template(), ntiles: ti.template(), offsets: ti.template(), tiles_x,
-               num_tiles, num_poses, num_gaussians, keys: ti.template(), ids: ti.template()):
+               num_tiles, num_poses, num_gaussians, keys: ti.template(), ids: ti.template(), ellipse: ti.template()):
     """Parallel binning, step 1 (one thread per pose and Gaussian): depth [B, >= N] f32, rect
     [B, >= N, footprint.RECT_SIZE] i32 (tile box and footprint mask), ntiles [B, >= N] i32, offsets [B * N] i64
     (exclusive prefix sum of ntiles over pose-major (pose, Gaussian)) -> keys [>= M] i64 ``(pose * num_tiles +
     tile) << 32 | depth bits`` (depths are positive, so their bits order like the values) and ids [>= M] i32
-    (Gaussian index), M = the sum of ntiles: one key per tile of the Gaussian's footprint."""
+    (Gaussian index), M = the sum of ntiles: one key per tile of the Gaussian's footprint (its box without
+    ``ellipse``)."""
     for b, i in ti.ndrange(num_poses, num_gaussians):
         if ntiles[b, i] > 0:
             k = ti.cast(offsets[b * num_gaussians + i], ti.i32)
             low = ti.cast(ti.bit_cast(depth[b, i], ti.i32), ti.i64)
-            mask = read_mask(rect, b, i)
+            mask = read_mask(rect, b, i, ellipse)
             q = 0
             for ty in range(rect[b, i, 1], rect[b, i, 3]):
                 for tx in range(rect[b, i, 0], rect[b, i, 2]):
-                    if in_footprint(mask, q):
+                    if in_footprint(mask, q, ellipse):
                         keys[k] = (ti.cast(b * num_tiles + ty * tiles_x + tx, ti.i64) << 32) | low
                         ids[k] = i
                         k += 1
@@ -219,9 +221,9 @@ def offsets_kernel():
 
 
 @functools.cache
-def lists_kernel(num_passes: int):
-    """Parallel binning once the lists are sized, in one launch: the keys (:func:`write_keys`), ``num_passes``
-    radix passes (``radix.sort_passes``) and the tile starts (:func:`tile_starts`)."""
+def lists_kernel(num_passes: int, ellipse: bool):
+    """Parallel binning once the lists are sized, in one launch: the keys (:func:`write_keys`; ``ellipse``: by
+    footprint mask), ``num_passes`` radix passes (``radix.sort_passes``) and the tile starts (:func:`tile_starts`)."""
     sort = sort_passes(num_passes)
     i64, i32 = ti.i64, ti.i32
 
@@ -234,7 +236,7 @@ def lists_kernel(num_passes: int):
                      counts: ti.types.ndarray(dtype=i32, ndim=2), sums: ti.types.ndarray(dtype=i64, ndim=1),
                      digit_offsets: ti.types.ndarray(dtype=i64, ndim=1),
                      tile_counts: ti.types.ndarray(dtype=i32, ndim=1), tile_start: ti.types.ndarray(dtype=i32, ndim=2)):
-        write_keys(depth, rect, ntiles, offsets, tiles_x, num_tiles, num_poses, num_gaussians, keys, ids)
+        write_keys(depth, rect, ntiles, offsets, tiles_x, num_tiles, num_poses, num_gaussians, keys, ids, ellipse)
         sort(keys, ids, keys_tmp, ids_tmp, m, bs, nb, scan_bs, counts, sums, digit_offsets)
         if ti.static(num_passes % 2 == 0):
             tile_starts(keys, m, num_poses, num_tiles, tile_counts, tile_start)
@@ -245,7 +247,7 @@ def lists_kernel(num_passes: int):
 
 
 def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: int, tiles_x: int, num_tiles: int,
-                 lists, scratch, tile_start, tile_counts):
+                 lists, scratch, tile_start, tile_counts, ellipse: bool):
     """Tile lists of ``num_poses`` poses by a parallel key sort, every step a Taichi kernel.
 
     Args:
@@ -256,6 +258,7 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
         scratch: ``radix.radix_sort``'s ``counts``, ``offsets`` and ``sums``.
         tile_start: [B, num_tiles + 1] int32; its first ``num_poses`` rows receive each tile's start relative to
             the pose's first entry (the last column: the pose's total). tile_counts: int32 [>= B * num_tiles].
+        ellipse: bin by the footprint masks the projection wrote (its ``ellipse_tiles``), else by box.
 
     Returns:
         totals [num_poses] int64 (numpy): entries per pose; the lists hold each pose's entries from the sum of the
@@ -267,7 +270,7 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
     m = int(totals.sum())
     buf = lists(m)
     num_passes = passes(32 + max(1, (B * num_tiles - 1).bit_length()))
-    lists_kernel(num_passes)(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, m, *blocks(m), buf.keys,
+    lists_kernel(num_passes, ellipse)(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, m, *blocks(m), buf.keys,
                              buf.ids, buf.keys_tmp, buf.ids_tmp, scratch.counts, scratch.sums, scratch.offsets,
                              tile_counts, tile_start)
     buf.isect = buf.ids if num_passes % 2 == 0 else buf.ids_tmp

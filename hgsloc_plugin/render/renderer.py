@@ -54,9 +54,9 @@ class Renderer:
         self.gaussians = DeviceGaussians.from_scene(scene)
         self.pool = Pool()
         self.sort_mode = sort_mode(self.config.sort, current_arch())
-        self._project = projection_kernel(self.config, self.sh_degree, count=self.sort_mode == "serial",
-                                          ellipse_tiles=uses_ellipse_tiles(self.config, current_arch()))
-        self._sort = tile_sort_kernel(self.config)
+        self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, current_arch())  # RasterConfig.tile_test
+        self._project = projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse)
+        self._sort = tile_sort_kernel(self.config, ellipse)
         auto_blend = "pixel" if current_arch() == "cuda" else "splat"
         self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
         self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
@@ -236,7 +236,7 @@ class Renderer:
         if parallel:
             totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, rec.offsets, B, self.n, tx, tx * ty,
                                   lambda m: self.pool.tile_lists(m, parallel=True), self.pool.radix_scratch(),
-                                  ws.tile_start, ws.tile_counts)
+                                  ws.tile_start, ws.tile_counts, self.ellipse_tiles)
         base = np.zeros(ws.batch, np.int64)
         base[1:B] = np.cumsum(totals)[:-1]
         ws.upload("isect_base", base)

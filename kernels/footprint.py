@@ -9,7 +9,8 @@ Gaussian's alpha reaches ``alpha_min``: the test is conservative by ``SIGMA_MARG
 
 The footprint travels in the projection's ``rect`` [B, N, RECT_SIZE]: the box's tile x0, y0, x1, y1 (exclusive
 ends), then the 64-bit mask of the box's tiles (row-major in the box) as two int32 words, low then high. A box of
-more than ``MASK_TILES`` tiles keeps all of them (mask all ones).
+more than ``MASK_TILES`` tiles keeps all of them (mask all ones). Binning by box, the projection writes no
+mask and the sorts read none (``read_mask`` and ``in_footprint`` fold to constants).
 """
 
 import taichi as ti

@@ -100,9 +100,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
         early, conservative frustum test before the covariance);
         outputs: cams [B, Cam.SIZE] (each pose's camera record, ``layout.Cam``, also read by the derivative
         pass), depth [B, N] (camera z, the sort key), rect [B, N, footprint.RECT_SIZE] (the tile box x0, y0,
-        x1, y1, exclusive ends, and the mask of its tiles the Gaussian reaches: ``footprint.py``), ntiles [B, N]
-        (tiles in the footprint; 0 = culled), packed [B, N, Rec.SIZE]: one record per Gaussian for the blend kernels
-        (fields named in ``layout.Rec``).
+        x1, y1, exclusive ends, and with ``ellipse_tiles`` the mask of its tiles the Gaussian reaches:
+        ``footprint.py``), ntiles [B, N] (tiles in the footprint; 0 = culled), packed [B, N, Rec.SIZE]: one
+        record per Gaussian for the blend kernels (fields named in ``layout.Rec``).
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane

@@ -70,14 +70,16 @@ def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, r
         workers / ray_address: N local Ray worker processes, or an existing cluster ("auto", "ray://...");
             by default everything runs in this process. Results are identical either way.
         batch_size: queries advanced together, their renders in shared launches (``lockstep.py``; each Ray
-            worker too); 1: one query at a time; None: :func:`~hgsloc_plugin.backend.default_batch_size`.
+            worker too); 1: one query at a time; None: :func:`~hgsloc_plugin.backend.default_batch_size` (on
+            Ray, each worker's backend's).
             The poses are the same for every batch size.
         on_result: called as ``on_result(query, result)`` as each query finishes (in any order).
     """
     from tqdm import tqdm
 
     queries = list(queries)
-    batch_size = check_batch_size(batch_size)
+    if batch_size is not None or not (workers or ray_address):
+        batch_size = check_batch_size(batch_size)
     results: dict[int, RefineResult] = {}
     with tqdm(total=len(queries), desc=desc, unit="query", disable=not progress) as bar:
         for q, res in _results(refiner, queries, workers, ray_address, batch_size):
@@ -101,8 +103,9 @@ def check_batch_size(batch_size: int | None) -> int:
     return int(batch_size)
 
 
-def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: str | None, batch_size: int):
-    """(query, result) pairs as they finish."""
+def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: str | None,
+             batch_size: int | None):
+    """(query, result) pairs as they finish (``batch_size`` None only on Ray: each worker's default)."""
     if workers or ray_address:
         from .distributed import ray_results
 

@@ -1,17 +1,46 @@
 """Ray mechanics for :mod:`hgsloc_plugin.batch`: a pool of refiner actors (optional extra ``[ray]``).
 
-Each worker is a Ray actor that starts Taichi once (CUDA when the node gives it a GPU, else the CPU) and builds
+Each worker is a Ray actor that starts Taichi once (CUDA when the cluster has GPUs, else the CPU) and builds
 one :class:`~hgsloc_plugin.refine.Refiner` from the scene (sent once through Ray's object store), the search
-config and the raster config, so it renders exactly as the caller's refiner does. Queries go out in small
-chunks; a worker that dies has its unfinished chunk re-queued on a fresh worker (bounded retries).
+config and the raster config, so it renders exactly as the caller's refiner does. Workers share the GPUs
+(:func:`worker_resources`): a query's host side (Python, launches, read-backs) takes longer than its kernels on a
+GPU, so several processes keep one device busy. Queries go out in small chunks; a worker that dies has its
+unfinished chunk re-queued on a fresh worker (bounded retries).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterator, Sequence
 
+from .backend import DEFAULT_BATCH_SIZE
+
 logger = logging.getLogger("hgsloc_plugin")
+
+#: resolution of Ray's fractional resources (four decimals): a GPU share is rounded down to it, so that
+#: ``workers per GPU`` shares never add up to more than one GPU
+_RAY_RESOURCE_STEP = 1e-4
+
+
+def worker_resources(gpus: float, workers: int, threads: int = 1) -> tuple[dict, str]:
+    """Ray resources of one worker and the backend it starts: (``{"num_cpus", "num_gpus"}``, "cuda" or "cpu").
+
+    Args:
+        gpus: the cluster's GPUs (``ray.cluster_resources()["GPU"]``); workers: the pool's size; threads: CPU
+            threads per worker.
+
+    With GPUs, every worker runs on CUDA and ``ceil(workers / gpus)`` of them share a GPU (a share of 1 / that,
+    rounded down to Ray's resolution: all of them fit at once); without, on the CPU.
+    """
+    if int(workers) != workers or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    whole = int(gpus)  # a fractional cluster total (a GPU already shared out) offers its whole GPUs only
+    if whole < 1:
+        return {"num_cpus": threads, "num_gpus": 0}, "cpu"
+    per_gpu = math.ceil(workers / whole)
+    share = 1.0 if per_gpu == 1 else math.floor(1.0 / per_gpu / _RAY_RESOURCE_STEP) * _RAY_RESOURCE_STEP
+    return {"num_cpus": threads, "num_gpus": share}, "cuda"
 
 
 def _require_ray():
@@ -32,16 +61,18 @@ def _worker_class(ray):
             init(arch, cpu_threads=threads or None)
             self.refiner = Refiner(scene, config, raster)
 
-        def refine_chunk(self, queries, batch_size: int):
+        def refine_chunk(self, queries, batch_size: int | None):
+            from .backend import default_batch_size
             from .lockstep import refine_queries
 
+            batch_size = batch_size or default_batch_size()  # None: this worker's backend's default
             return [(q.index, res) for q, res in refine_queries(self.refiner, queries, batch_size)]
 
     return RefineWorker
 
 
 def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, address: str | None = None,
-                chunk_size: int = 2, batch_size: int = 1, max_retries: int = 2, threads_per_worker: int = 1,
+                chunk_size: int = 2, batch_size: int | None = 1, max_retries: int = 2, threads_per_worker: int = 1,
                 _after_chunk: Callable | None = None) -> Iterator[tuple]:
     """Yield (query, RefineResult) for every query as workers finish them (any order).
 
@@ -50,8 +81,10 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
         queries: :class:`~hgsloc_plugin.batch.Query` objects.
         address: an existing cluster ("auto" or "ray://host:port"); None starts a local Ray with ``workers``
             CPUs (or joins the one already initialised in this process).
-        chunk_size: queries sent to a worker at a time (at least ``batch_size``).
-        batch_size: queries a worker advances together (``batch.refine_queries``).
+        chunk_size: queries sent to a worker at a time (at least its batch size).
+        batch_size: queries a worker advances together (``lockstep.refine_queries``); None: the default of the
+            workers' backend (``backend.DEFAULT_BATCH_SIZE``; :func:`worker_resources` decides it).
+        threads_per_worker: CPU threads each worker's Taichi uses (and the CPUs Ray reserves for it).
         max_retries: times a chunk is re-queued after its worker died.
     """
     ray = _require_ray()
@@ -65,16 +98,16 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
             ray.init(num_cpus=max(1, workers * threads_per_worker), log_to_driver=False, include_dashboard=False)
         started = True
     Worker = _worker_class(ray)
-    gpus = ray.cluster_resources().get("GPU", 0)
-    opts = {"num_cpus": threads_per_worker, "num_gpus": 1 if gpus >= workers else 0, "max_restarts": 0}
-    arch = "cuda" if opts["num_gpus"] else "cpu"
+    resources, arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, threads_per_worker)
+    opts = {**resources, "max_restarts": 0}
+    logger.info("%d Ray workers on %s (%s GPU each)", workers, arch, resources["num_gpus"])
     scene_ref = ray.put(scene)
     by_index = {q.index: q for q in queries}
 
     def spawn():
         return Worker.options(**opts).remote(scene_ref, config, raster, arch, threads_per_worker)
 
-    chunk_size = max(chunk_size, batch_size)
+    chunk_size = max(chunk_size, batch_size or DEFAULT_BATCH_SIZE[arch])
     queue = [(list(queries[i:i + chunk_size]), 0) for i in range(0, len(queries), chunk_size)]
     running = {}  # future -> (actor, chunk, tries)
 

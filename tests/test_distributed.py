@@ -16,7 +16,7 @@ import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.batch import Query  # noqa: E402
 from hgsloc_plugin.demo.queries import query_poses  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.distributed import ray_results  # noqa: E402
+from hgsloc_plugin.distributed import ray_results, worker_resources  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 
 CFG = hp.RefineConfig.preset("fast", max_expansions=8)
@@ -44,7 +44,33 @@ def _items(tasks):
     return [(t.image, t.camera, t.coarse_pose, t.name) for t in tasks]
 
 
+@pytest.mark.parametrize("gpus", [1, 2, 3, 4, 2.5])
+def test_workers_share_the_gpus_and_all_fit(gpus):
+    """Every worker goes on a GPU when the cluster has one (before: two workers on one GPU both ran on the CPU),
+    as many per GPU as the pool needs, and the shares of one GPU's workers never add up to more than it (Ray
+    keeps four decimals: 7 shares of 1/7 rounded to 0.1429 would leave the seventh worker waiting forever)."""
+    whole = int(gpus)
+    for workers in range(1, 18):
+        res, arch = worker_resources(gpus, workers, threads=2)
+        assert arch == "cuda" and res["num_cpus"] == 2
+        share = res["num_gpus"]
+        assert 0 < share <= 1
+        per_gpu = round(share * 1e4) // 1  # in Ray's units of 1e-4 GPU
+        fits = whole * (10_000 // per_gpu)  # workers that can be placed at once
+        assert fits >= workers, (gpus, workers, share)
+        assert share == 1.0 if workers <= whole else share < 1.0
+        assert share >= 1.0 / (-(-workers // whole)) - 1e-4  # no smaller than the pool needs
+
+
+def test_no_gpu_means_cpu_workers():
+    assert worker_resources(0, 3) == ({"num_cpus": 1, "num_gpus": 0}, "cpu")
+    assert worker_resources(0.5, 3)[1] == "cpu"  # a GPU already shared out is not a GPU to start CUDA on
+    with pytest.raises(ValueError, match="workers"):
+        worker_resources(1, 0)
+
+
 def test_two_workers_equal_single_process_in_order(local_ray, case):
+    """Also the workers' own default batch size (``batch_size`` None goes to the workers)."""
     scene, tasks = case
     refiner = hp.HGSLocPlugin(scene, CFG)
     ref = refiner.refine_many(_items(tasks), progress=False)

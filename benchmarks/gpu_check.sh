@@ -5,12 +5,14 @@
 #      radix sort);
 #   2. the throughput table on CUDA (issue 33's goals: queries per second and render-times per query, sequential
 #      and in lockstep batches; the 7-Scenes-shaped job with 64 queries so that a batch of 32 fills);
-#   3. the same refinements recorded on CUDA and on the CPU, compared (the same poses within 0.001 % of the depth);
-#   4. the tile lists binned by ellipse and by box (RasterConfig.tile_test's CUDA default);
-#   5. the densified room's lockstep batches with their working sets' union up to 2x, and none
+#   3. the 7-Scenes-shaped job in processes sharing the GPU (plain processes, and Ray workers where Ray is
+#      installed): the host side of a query outlasts its kernels there;
+#   4. the same refinements recorded on CUDA and on the CPU, compared (the same poses within 0.001 % of the depth);
+#   5. the tile lists binned by ellipse and by box (RasterConfig.tile_test's CUDA default);
+#   6. the densified room's lockstep batches with their working sets' union up to 2x, and none
 #      (backend.DEFAULT_UNION_LIMIT's CUDA default);
-#   6. the derivative pass with and without pixel masks (RasterConfig.grad_masks' CUDA default);
-#   7. the map-scale table.
+#   7. the derivative pass with and without pixel masks (RasterConfig.grad_masks' CUDA default);
+#   8. the map-scale table.
 # A step starts only while the budget (GPU_CHECK_BUDGET_S seconds, default 540) lasts, and is stopped at its end;
 # OUT_DIR/steps.log lists each step's exit status and seconds ("skipped" past the budget).
 # Exit status: 0 all passed, 1 a step failed, 3 none failed but some were skipped or stopped for time.
@@ -70,6 +72,8 @@ export out
 step tests bash -c cuda_tests
 step throughput env HGSLOC_ARCH=cuda python benchmarks/throughput.py --shaped-queries 64 \
     --out "$out/throughput_cuda.md"
+step scale env HGSLOC_ARCH=cuda python benchmarks/scale.py --queries 64 --processes 4 8 --workers 4 8 \
+    --threads 2 --out "$out/scale_cuda.md"
 step backends bash -c backends
 step tile_lists env HGSLOC_ARCH=cuda python benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md"
 step unions bash -c unions

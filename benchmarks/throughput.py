@@ -73,23 +73,40 @@ def room_case(k: int, n: int = 3, scale: float = 1.0):
 def shaped_priors(qs) -> list[hp.Pose]:
     """The 7-Scenes-shaped job's priors: ACE's errors for the first half of ``qs``, Marepo's for the rest."""
     rng = np.random.default_rng(500)
+    by_method = {m: localizer_errors(m) for m in ("ace", "marepo")}  # each parses every 7-Scenes pose file: once
     out = []
     for k, (_, g, _, _) in enumerate(qs):
-        errs = localizer_errors("ace" if k < len(qs) // 2 else "marepo")
+        errs = by_method["ace" if k < len(qs) // 2 else "marepo"]
         out.append(shaped_prior(g, errs[int(rng.integers(len(errs)))], 2.0))  # metric: the errors as they are
     return out
 
 
-def load(case: str, shaped_queries: int = 6):
+def load(case: str, shaped_queries: int = 6, room_queries: int = 3):
+    """(camera, scene, [(name, truth, image, median depth)], background) of ``case``, or None without its data;
+    ``shaped_queries`` / ``room_queries``: the query count of the 7-Scenes-shaped job / the room cases."""
     if case == "7scenes_shaped":  # the room, queries at 640x480 (7-Scenes' size)
         return room_case(1, n=shaped_queries, scale=2.0)
     if case.startswith("room"):
-        return room_case(int(case.split("_x")[1]) if "_x" in case else 1)
+        return room_case(int(case.split("_x")[1]) if "_x" in case else 1, n=room_queries)
     out = load_dataset(case)
     if out is None:
         return None
     cam, scene, qs, bg = out
     return cam, scene, qs[:5] if case == "lego" else qs, bg
+
+
+def is_metric(case: str) -> bool:
+    """Whether ``case``'s priors and errors are in scene units (the room: metres) rather than % of the depth."""
+    return case.startswith("room") or case == "7scenes_shaped"
+
+
+def case_priors(case: str, qs, pct: float, deg: float) -> list[hp.Pose]:
+    """The priors of ``case``'s queries ``qs`` (``load``'s): exactly ``pct`` % of each query's median depth (cm on
+    the room) and ``deg`` degrees in random directions; the 7-Scenes-shaped job's from ACE's and Marepo's errors."""
+    if case == "7scenes_shaped":
+        return shaped_priors(qs)
+    rng = np.random.default_rng(7)
+    return [se3_noise(g, deg, pct / 100 * (1.0 if is_metric(case) else d), rng) for _, g, _, d in qs]
 
 
 def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose) -> tuple[float, float]:
@@ -184,12 +201,9 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
         print(f"skipping {case}: data not found", file=sys.stderr)
         return None
     cam, scene, qs, bg = loaded
-    metric = case.startswith("room") or case == "7scenes_shaped"
+    metric = is_metric(case)
     unit = "cm" if metric else "% depth"
-    rng = np.random.default_rng(7)
-    priors = [se3_noise(g, deg, pct / 100 * (1.0 if metric else d), rng) for _, g, _, d in qs]
-    if case == "7scenes_shaped":
-        priors = shaped_priors(qs)
+    priors = case_priors(case, qs, pct, deg)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     before = render_ms(refiner, cam, priors[0])

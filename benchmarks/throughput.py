@@ -24,7 +24,9 @@ the returned median error (% depth or cm; degrees), queries made worse: all for 
 backend's: ``hgsloc_plugin/lockstep.py``): seconds per query, speed over sequential, device calls per query
 sequential -> batched (the host-device round trips: a batched launch counts once), Taichi kernel launches per query
 sequential -> batched (uploads and read-backs included: each costs the host tens of microseconds whatever the
-device), and whether every returned pose equals the sequential one bit for bit. A second table splits each query's
+device), the host's milliseconds per query outside the kernel launches, sequential -> batched (Python, NumPy,
+image loading: what one process spends per query on any device, however fast its kernels), and whether every
+returned pose equals the sequential one bit for bit. A second table splits each query's
 time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its 12 one-pixel moves),
 the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
 """
@@ -161,16 +163,20 @@ def stage_clock():
 
 @contextlib.contextmanager
 def kernel_launches():
-    """Taichi kernel launches while inside: a one-element list holding the count (wraps ``Kernel.__call__``; a
-    ``from_numpy`` upload and a read-back are launches too)."""
+    """Taichi kernel launches while inside: a list holding their count and the seconds spent in them (wraps
+    ``Kernel.__call__``; a ``from_numpy`` upload and a read-back are launches too)."""
     from taichi.lang import kernel_impl
 
-    count = [0]
+    count = [0, 0.0]
     original = kernel_impl.Kernel.__call__
 
     def counted(self, *args, **kwargs):
         count[0] += 1
-        return original(self, *args, **kwargs)
+        t0 = time.perf_counter()
+        try:
+            return original(self, *args, **kwargs)
+        finally:
+            count[1] += time.perf_counter() - t0
 
     kernel_impl.Kernel.__call__ = counted
     try:
@@ -217,6 +223,8 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     ms, ms_batch = np.mean([before, render_ms(refiner, cam, priors[0])], axis=0)
     with kernel_launches() as batch_launches:
         together, sec_b, gate = batched(refiner, items, batch_size, union_limit)
+    n = len(items)
+    host_ms = [1000 * (sec - seq_launches[1] / n), 1000 * (sec_b - batch_launches[1] / n)]
     same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for a, b in zip(results, together))
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
@@ -232,6 +240,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
            f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} | "
            f"{sec_b:.2f} | {sec / sec_b:.2f}x | {gate.requests / len(items):.0f} -> {gate.launches / len(items):.0f} | "
            f"{seq_launches[0] / len(items):.0f} -> {batch_launches[0] / len(items):.0f} | "
+           f"{host_ms[0]:.0f} -> {host_ms[1]:.0f} | "
            f"{'yes' if same else 'NO'} |")
     print(row, flush=True)
     unit = len(items) * ms / 1000  # seconds of one render, per query
@@ -267,8 +276,9 @@ def main() -> None:
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
-            "| batched s / query | batched speed | device calls / query | kernel launches / query | same poses |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| batched s / query | batched speed | device calls / query | kernel launches / query "
+            "| host ms / query | same poses |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
     done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit) for c in a.cases) if r]
     rows = [r for r, _ in done]

@@ -18,12 +18,15 @@
 # Exit status: 0 all passed, 1 a step failed, 3 none failed but some were skipped or stopped for time.
 # Usage (the package installed with its test extras, ../shared/data beside the repository):
 #   bash benchmarks/gpu_check.sh [OUT_DIR]
+# On a lent device machine: run benchmarks/gpu_pack.sh here first and carry .gpu there (gpu_setup.sh installs the
+# packages and unpacks the data from it); Ray is not packed (too large), so the Ray rows of step 3 are skipped.
 set -u -o pipefail
 out=${1:-gpu_check_out}
 mkdir -p "$out"
 cd "$(dirname "$0")/.." || exit 2
 budget=${GPU_CHECK_BUDGET_S:-540}
-start=$SECONDS
+start=$SECONDS  # the setup's unpacking counts against the budget too
+. benchmarks/gpu_setup.sh  # sets PY
 status=0
 : > "$out/steps.log"
 
@@ -48,36 +51,36 @@ step() {  # step NAME COMMAND...: run COMMAND with the budget's remaining time, 
 }
 
 cuda_tests() {
-  HGSLOC_ARCH=cuda python -m pytest -q -p no:cacheprovider tests/test_tile_sort.py tests/test_render.py \
+  HGSLOC_ARCH=cuda "$PY" -m pytest -q -p no:cacheprovider tests/test_tile_sort.py tests/test_render.py \
       tests/test_pose_grad.py tests/test_working_set.py tests/test_lod.py tests/test_lockstep.py \
       tests/test_layout.py 2>&1 | tee "$out/tests_cuda.log"
   grep -q " passed" "$out/tests_cuda.log" && ! grep -qE " (failed|error)" "$out/tests_cuda.log"
 }
 
 backends() {
-  HGSLOC_ARCH=cuda python benchmarks/backends.py --out "$out/cuda.json" \
-    && HGSLOC_ARCH=cpu python benchmarks/backends.py --out "$out/cpu.json" \
-    && python benchmarks/backends.py --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md"
+  HGSLOC_ARCH=cuda "$PY" benchmarks/backends.py --out "$out/cuda.json" \
+    && HGSLOC_ARCH=cpu "$PY" benchmarks/backends.py --out "$out/cpu.json" \
+    && "$PY" benchmarks/backends.py --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md"
 }
 
 unions() {
-  HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 1 \
+  HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 1 \
       --out "$out/throughput_cuda_no_union.md" \
-    && HGSLOC_ARCH=cuda python benchmarks/throughput.py --cases room_x20 --union-limit 2 \
+    && HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 2 \
       --out "$out/throughput_cuda_union2.md"
 }
 
 export -f cuda_tests backends unions
-export out
+export out PY
 step tests bash -c cuda_tests
-step throughput env HGSLOC_ARCH=cuda python benchmarks/throughput.py --shaped-queries 64 \
+step throughput env HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --shaped-queries 64 \
     --out "$out/throughput_cuda.md"
-step scale env HGSLOC_ARCH=cuda python benchmarks/scale.py --queries 64 --processes 4 8 --workers 4 8 \
+step scale env HGSLOC_ARCH=cuda "$PY" benchmarks/scale.py --queries 64 --processes 4 8 --workers 4 8 \
     --threads 2 --out "$out/scale_cuda.md"
 step backends bash -c backends
-step tile_lists env HGSLOC_ARCH=cuda python benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md"
+step tile_lists env HGSLOC_ARCH=cuda "$PY" benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md"
 step unions bash -c unions
-step derivative_pass env HGSLOC_ARCH=cuda python benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md"
-step map_scale env HGSLOC_ARCH=cuda python benchmarks/map_scale.py --paths "whole map, search" \
+step derivative_pass env HGSLOC_ARCH=cuda "$PY" benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md"
+step map_scale env HGSLOC_ARCH=cuda "$PY" benchmarks/map_scale.py --paths "whole map, search" \
     "working set, gradient first" --out "$out/map_scale_cuda.md"
 exit $status

@@ -166,8 +166,18 @@ class Pose:
 
     @property
     def R(self) -> np.ndarray:
-        """Rotation world-to-camera [3, 3]."""
-        return qvec_to_rotmat(self.qvec)
+        """Rotation world-to-camera [3, 3] (a copy: the pose keeps its own)."""
+        return self._rot().copy()
+
+    def _rot(self) -> np.ndarray:
+        """The rotation [3, 3], read-only, computed from ``qvec`` once per pose (rotations are read far more often
+        than poses are made: composing, inverting and comparing poses all read them)."""
+        R = self.__dict__.get("_R")
+        if R is None:
+            R = qvec_to_rotmat(self.qvec)
+            R.flags.writeable = False
+            object.__setattr__(self, "_R", R)
+        return R
 
     @property
     def t(self) -> np.ndarray:
@@ -177,7 +187,7 @@ class Pose:
     def matrix(self) -> np.ndarray:
         """World-to-camera matrix [4, 4]."""
         M = np.eye(4)
-        M[:3, :3] = self.R
+        M[:3, :3] = self._rot()
         M[:3, 3] = self.tvec
         return M
 
@@ -187,32 +197,32 @@ class Pose:
 
     def centre(self) -> np.ndarray:
         """Camera centre in world coordinates [3]: c = -R^T t."""
-        return -self.R.T @ self.tvec
+        return -self._rot().T @ self.tvec
 
     def inv(self) -> Pose:
         """The inverse transform (camera-to-world)."""
-        R = self.R
+        R = self._rot()
         return Pose.from_Rt(R.T, -R.T @ self.tvec)
 
     def __matmul__(self, other: Pose) -> Pose:
         """Composition: (A @ B)(p) = A(B(p))."""
-        R = self.R @ other.R
-        return Pose(rotmat_to_qvec(R), self.R @ other.tvec + self.tvec)
+        R = self._rot() @ other._rot()
+        return Pose(rotmat_to_qvec(R), self._rot() @ other.tvec + self.tvec)
 
     def perturbed_in_camera(self, rot_vec, trans) -> Pose:
         """Left-multiply by a camera-frame motion: rotation about the camera axes [3] (rad), then translation [3]."""
         dR = so3_exp(rot_vec)
-        return Pose(rotmat_to_qvec(dR @ self.R), dR @ self.tvec + np.asarray(trans, dtype=np.float64))
+        return Pose(rotmat_to_qvec(dR @ self._rot()), dR @ self.tvec + np.asarray(trans, dtype=np.float64))
 
     def offset_in_camera(self, other: Pose) -> np.ndarray:
         """The camera-frame motion [6] = (rotation vector [3] rad, translation [3]) that takes this pose to ``other``:
         ``self.perturbed_in_camera(xi[:3], xi[3:]) == other`` (the inverse of :meth:`perturbed_in_camera`)."""
-        dR = other.R @ self.R.T
+        dR = other._rot() @ self._rot().T
         return np.concatenate([so3_log(dR), other.tvec - dR @ self.tvec])
 
     def errors_to(self, other: Pose) -> tuple[float, float]:
         """(camera-centre distance, rotation angle in degrees) between this pose and ``other``."""
-        return float(np.linalg.norm(self.centre() - other.centre())), rotation_angle_deg(other.R, self.R)
+        return float(np.linalg.norm(self.centre() - other.centre())), rotation_angle_deg(other._rot(), self._rot())
 
     def as_array(self) -> np.ndarray:
         """[7] = qw qx qy qz tx ty tz."""

@@ -152,6 +152,23 @@ def test_pose_normalises_and_canonicalises_sign():
     np.testing.assert_array_equal(T.qvec, [1, 0, 0, 0])
 
 
+def test_pose_rotation_is_computed_once_and_handed_out_as_a_copy():
+    """``Pose.R`` comes from the pose's own rotation, computed from the quaternion once: changing the array handed
+    out changes neither the pose nor what it computes; a pickled pose (Ray sends them) equals the original."""
+    import pickle
+
+    from hgsloc_plugin.pose import qvec_to_rotmat
+
+    p = Pose([0.9, 0.1, -0.3, 0.2], [0.5, -1.0, 2.0])
+    R = p.R
+    assert np.array_equal(R, qvec_to_rotmat(p.qvec))
+    centre = p.centre()
+    R[:] = 0.0
+    assert np.array_equal(p.R, qvec_to_rotmat(p.qvec)) and np.array_equal(p.centre(), centre)
+    q = pickle.loads(pickle.dumps(p))
+    assert q == p and np.array_equal(q.R, p.R) and np.array_equal((q @ p.inv()).as_array(), (p @ p.inv()).as_array())
+
+
 def test_rotation_angle_small_and_exact():
     for deg in (1e-4, 0.01, 1.0, 90.0, 179.0):
         R = so3_exp(np.array([0.3, -0.4, 0.5]) / np.linalg.norm([0.3, -0.4, 0.5]) * math.radians(deg))

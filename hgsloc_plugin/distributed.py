@@ -1,8 +1,9 @@
 """Ray mechanics for :mod:`hgsloc_plugin.batch`: a pool of refiner actors (optional extra ``[ray]``).
 
-Each worker is a Ray actor that starts Taichi once (CUDA when the cluster has GPUs, else the CPU) and builds
-one :class:`~hgsloc_plugin.refine.Refiner` from the scene (sent once through Ray's object store), the search
-config and the raster config, so it renders exactly as the caller's refiner does. Workers share the GPUs
+Each worker is a Ray actor that starts Taichi once (CUDA when the cluster has GPUs, else the CPU; the caller's
+``HGSLOC_ARCH`` decides when set) and builds one :class:`~hgsloc_plugin.refine.Refiner` from the scene (sent once
+through Ray's object store), the search config and the raster config, so it renders exactly as the caller's
+refiner does. Workers share the GPUs
 (:func:`worker_resources`): a query's host side (Python, launches, read-backs) takes longer than its kernels on a
 GPU, so several processes keep one device busy. Queries go out in small chunks; a worker that dies has its
 unfinished chunk re-queued on a fresh worker (bounded retries).
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable, Iterator, Sequence
 
 from .backend import DEFAULT_BATCH_SIZE
@@ -23,20 +25,26 @@ logger = logging.getLogger("hgsloc_plugin")
 _RAY_RESOURCE_STEP = 1e-4
 
 
-def worker_resources(gpus: float, workers: int, threads: int = 1) -> tuple[dict, str]:
+def worker_resources(gpus: float, workers: int, threads: int = 1, arch: str = "auto") -> tuple[dict, str]:
     """Ray resources of one worker and the backend it starts: (``{"num_cpus", "num_gpus"}``, "cuda" or "cpu").
 
     Args:
         gpus: the cluster's GPUs (``ray.cluster_resources()["GPU"]``); workers: the pool's size; threads: CPU
-            threads per worker.
+            threads per worker; arch: "auto", "cpu" or "cuda" (``backend.init``'s; "cuda" without a GPU is an
+            error).
 
-    With GPUs, every worker runs on CUDA and ``ceil(workers / gpus)`` of them share a GPU (a share of 1 / that,
-    rounded down to Ray's resolution: all of them fit at once); without, on the CPU.
+    With GPUs ("auto", "cuda"), every worker runs on CUDA and ``ceil(workers / gpus)`` of them share a GPU (a share
+    of 1 / that, rounded down to Ray's resolution: all of them fit at once); otherwise on the CPU.
     """
     if int(workers) != workers or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    arch = arch.lower()
+    if arch not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"arch must be 'auto', 'cpu' or 'cuda', got {arch!r}")
     whole = int(gpus)  # a fractional cluster total (a GPU already shared out) offers its whole GPUs only
-    if whole < 1:
+    if arch == "cuda" and whole < 1:
+        raise RuntimeError(f"CUDA workers requested (HGSLOC_ARCH=cuda) but the Ray cluster has {gpus:g} GPUs")
+    if whole < 1 or arch == "cpu":
         return {"num_cpus": threads, "num_gpus": 0}, "cpu"
     per_gpu = math.ceil(workers / whole)
     share = 1.0 if per_gpu == 1 else math.floor(1.0 / per_gpu / _RAY_RESOURCE_STEP) * _RAY_RESOURCE_STEP
@@ -98,7 +106,8 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
             ray.init(num_cpus=max(1, workers * threads_per_worker), log_to_driver=False, include_dashboard=False)
         started = True
     Worker = _worker_class(ray)
-    resources, arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, threads_per_worker)
+    resources, arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, threads_per_worker,
+                                       os.environ.get("HGSLOC_ARCH", "auto"))
     opts = {**resources, "max_restarts": 0}
     logger.info("%d Ray workers on %s (%s GPU each)", workers, arch, resources["num_gpus"])
     scene_ref = ray.put(scene)

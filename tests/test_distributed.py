@@ -62,11 +62,17 @@ def test_workers_share_the_gpus_and_all_fit(gpus):
         assert share >= 1.0 / (-(-workers // whole)) - 1e-4  # no smaller than the pool needs
 
 
-def test_no_gpu_means_cpu_workers():
+def test_no_gpu_or_the_cpu_asked_for_means_cpu_workers():
     assert worker_resources(0, 3) == ({"num_cpus": 1, "num_gpus": 0}, "cpu")
     assert worker_resources(0.5, 3)[1] == "cpu"  # a GPU already shared out is not a GPU to start CUDA on
+    assert worker_resources(2, 3, arch="cpu") == ({"num_cpus": 1, "num_gpus": 0}, "cpu")  # HGSLOC_ARCH=cpu
+    assert worker_resources(2, 3, arch="CUDA")[1] == "cuda"
+    with pytest.raises(RuntimeError, match="0 GPUs"):
+        worker_resources(0, 3, arch="cuda")
     with pytest.raises(ValueError, match="workers"):
         worker_resources(1, 0)
+    with pytest.raises(ValueError, match="arch"):
+        worker_resources(1, 2, arch="gpu")
 
 
 def test_two_workers_equal_single_process_in_order(local_ray, case):

@@ -152,8 +152,7 @@ def main() -> None:
         try:
             from hgsloc_plugin.distributed import worker_resources
 
-            res, worker_arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, a.threads,
-                                                os.environ.get("HGSLOC_ARCH", "auto"))  # as ray_results does
+            res, worker_arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, a.threads)
             # ray_results through run_batch: each worker's own default batch size
             got, start, per_query = timed(call(workers=workers), n)
         finally:

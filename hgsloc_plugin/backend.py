@@ -27,6 +27,15 @@ def _cache_dir() -> str:
     return str(Path(os.environ.get("HGSLOC_CACHE_DIR", default)))
 
 
+def requested_arch(arch: str | None = None) -> str:
+    """The backend asked for: ``arch``, else ``HGSLOC_ARCH``, else "auto"; lower case, checked to be one of
+    "auto", "cpu", "cuda"."""
+    requested = (arch or os.environ.get("HGSLOC_ARCH", "auto")).lower()
+    if requested not in _VALID:
+        raise ValueError(f"arch must be one of {_VALID}, got {requested!r} (from argument or HGSLOC_ARCH)")
+    return requested
+
+
 def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | None = None) -> str:
     """Start Taichi on the chosen backend; later calls return the backend already chosen.
 
@@ -39,9 +48,7 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
         The backend in use, "cpu" or "cuda".
     """
     global _ARCH
-    requested = (arch or os.environ.get("HGSLOC_ARCH", "auto")).lower()
-    if requested not in _VALID:
-        raise ValueError(f"arch must be one of {_VALID}, got {requested!r} (from argument or HGSLOC_ARCH)")
+    requested = requested_arch(arch)
     if _ARCH is not None:
         if requested not in ("auto", _ARCH):
             raise RuntimeError(

@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Callable, Iterator, Sequence
 
-from .backend import DEFAULT_BATCH_SIZE
+from .backend import DEFAULT_BATCH_SIZE, requested_arch
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -25,22 +24,20 @@ logger = logging.getLogger("hgsloc_plugin")
 _RAY_RESOURCE_STEP = 1e-4
 
 
-def worker_resources(gpus: float, workers: int, threads: int = 1, arch: str = "auto") -> tuple[dict, str]:
+def worker_resources(gpus: float, workers: int, threads: int = 1, arch: str | None = None) -> tuple[dict, str]:
     """Ray resources of one worker and the backend it starts: (``{"num_cpus", "num_gpus"}``, "cuda" or "cpu").
 
     Args:
         gpus: the cluster's GPUs (``ray.cluster_resources()["GPU"]``); workers: the pool's size; threads: CPU
-            threads per worker; arch: "auto", "cpu" or "cuda" (``backend.init``'s; "cuda" without a GPU is an
-            error).
+            threads per worker; arch: "auto", "cpu" or "cuda" (``backend.requested_arch``: None reads
+            ``HGSLOC_ARCH``; "cuda" without a GPU is an error).
 
     With GPUs ("auto", "cuda"), every worker runs on CUDA and ``ceil(workers / gpus)`` of them share a GPU (a share
     of 1 / that, rounded down to Ray's resolution: all of them fit at once); otherwise on the CPU.
     """
     if int(workers) != workers or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    arch = arch.lower()
-    if arch not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"arch must be 'auto', 'cpu' or 'cuda', got {arch!r}")
+    arch = requested_arch(arch)
     whole = int(gpus)  # a fractional cluster total (a GPU already shared out) offers its whole GPUs only
     if arch == "cuda" and whole < 1:
         raise RuntimeError(f"CUDA workers requested (HGSLOC_ARCH=cuda) but the Ray cluster has {gpus:g} GPUs")
@@ -106,8 +103,7 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
             ray.init(num_cpus=max(1, workers * threads_per_worker), log_to_driver=False, include_dashboard=False)
         started = True
     Worker = _worker_class(ray)
-    resources, arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, threads_per_worker,
-                                       os.environ.get("HGSLOC_ARCH", "auto"))
+    resources, arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, threads_per_worker)
     opts = {**resources, "max_restarts": 0}
     logger.info("%d Ray workers on %s (%s GPU each)", workers, arch, resources["num_gpus"])
     scene_ref = ray.put(scene)

@@ -51,7 +51,7 @@ def test_workers_share_the_gpus_and_all_fit(gpus):
     keeps four decimals: 7 shares of 1/7 rounded to 0.1429 would leave the seventh worker waiting forever)."""
     whole = int(gpus)
     for workers in range(1, 18):
-        res, arch = worker_resources(gpus, workers, threads=2)
+        res, arch = worker_resources(gpus, workers, threads=2, arch="auto")
         assert arch == "cuda" and res["num_cpus"] == 2
         share = res["num_gpus"]
         assert 0 < share <= 1
@@ -63,16 +63,24 @@ def test_workers_share_the_gpus_and_all_fit(gpus):
 
 
 def test_no_gpu_or_the_cpu_asked_for_means_cpu_workers():
-    assert worker_resources(0, 3) == ({"num_cpus": 1, "num_gpus": 0}, "cpu")
-    assert worker_resources(0.5, 3)[1] == "cpu"  # a GPU already shared out is not a GPU to start CUDA on
+    assert worker_resources(0, 3, arch="auto") == ({"num_cpus": 1, "num_gpus": 0}, "cpu")
+    assert worker_resources(0.5, 3, arch="auto")[1] == "cpu"  # a GPU already shared out is not a GPU to start CUDA on
     assert worker_resources(2, 3, arch="cpu") == ({"num_cpus": 1, "num_gpus": 0}, "cpu")  # HGSLOC_ARCH=cpu
     assert worker_resources(2, 3, arch="CUDA")[1] == "cuda"
     with pytest.raises(RuntimeError, match="0 GPUs"):
         worker_resources(0, 3, arch="cuda")
     with pytest.raises(ValueError, match="workers"):
-        worker_resources(1, 0)
+        worker_resources(1, 0, arch="auto")
     with pytest.raises(ValueError, match="arch"):
         worker_resources(1, 2, arch="gpu")
+
+
+def test_worker_backend_follows_hgsloc_arch(monkeypatch):
+    """Without ``arch``, the caller's ``HGSLOC_ARCH`` decides, as for ``backend.init``."""
+    monkeypatch.setenv("HGSLOC_ARCH", "cpu")
+    assert worker_resources(1, 2)[1] == "cpu"
+    monkeypatch.setenv("HGSLOC_ARCH", "auto")
+    assert worker_resources(1, 2)[1] == "cuda"
 
 
 def test_two_workers_equal_single_process_in_order(local_ray, case):

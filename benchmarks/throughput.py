@@ -27,7 +27,7 @@ sequential -> batched (uploads and read-backs included: each costs the host tens
 device), the host's milliseconds per query outside the kernel launches, sequential -> batched (Python, NumPy,
 image loading: what one process spends per query on any device, however fast its kernels), and whether every
 returned pose equals the sequential one bit for bit. A second table splits each query's
-time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its 12 one-pixel moves),
+time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its one-pixel moves),
 the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
 """
 

@@ -329,3 +329,79 @@ def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
     for n in rep["queries"]:
         if n not in failed:
             assert rep2["queries"][n] == rep["queries"][n], "done queries are not redone"
+
+
+def _quadratic_judge(model: str):
+    """Judge a candidate on a quadratic cost around it, ``0.1 + g.xi + xi' A xi / 2``, with the polish's model
+    ``model``: "exact" (the cost's ``A`` and ``g``), "wrong" (curvatures ranked the other way round, no gradient)
+    or "none" (not finite). Returns (verdict, the batches scored, the cost's 12 one-pixel rises)."""
+    from types import SimpleNamespace
+
+    from hgsloc_plugin.refine.polish import PolishStats
+    from hgsloc_plugin.refine.routes import Candidate
+    from hgsloc_plugin.refine.trust import _moves, judge
+
+    cam = hp.Camera(100, 80, 90.0, 90.0, 50.0, 40.0)
+    best = hp.Pose.identity().perturbed_in_camera([0.01, -0.02, 0.005], [0.1, 0.0, -0.05])
+    coarse = best.perturbed_in_camera([0.0, 0.03, 0.0], [0.05, 0.0, 0.0])
+    f, depth = 90.0, 2.0
+    curv = np.array([4.0, 3.0, 1.0, 6.0, 5.0, 2.0])
+    unit = np.r_[[f ** 2] * 3, [(f / depth) ** 2] * 3] * 1e-3  # one pixel of motion along each axis
+    A, g = np.diag(curv * unit), np.r_[0.0, 0.02, 0.0, 0.0, 0.0, 0.01]
+    H, grad = {"exact": (A, g), "wrong": (np.diag(unit / curv), np.zeros(6)),
+               "none": (np.full((6, 6), np.nan), g)}[model]
+
+    def cost(p):
+        if p is coarse:
+            return 1.0
+        xi = best.offset_in_camera(p)
+        return 0.1 + g @ xi + 0.5 * xi @ A @ xi
+
+    batches = []
+
+    def scorer(poses):
+        batches.append(list(poses))
+        return np.array([cost(p) for p in poses])
+
+    plan = SimpleNamespace(coarse_pose=coarse, prior_error=None, prior_error_deg=None, depth=depth,
+                           levels=((1.0, 0.1),), travel=lambda p: 0.1)
+    stats = PolishStats(cam.width, cam.height, 0.2, 0.1, 3, 3, 0, 0.01, "converged", H, grad)
+    cand = Candidate("gradient", best, math.nan, math.nan, best, polish=[stats])
+    verdict = judge(cand, plan, scorer, cam, rule="trust", lattice=True, structural=True, pivot=True)
+    rises = np.array([cost(m) for m in _moves(best, plan, cam, True)]) - 0.1
+    return verdict, batches, rises
+
+
+def test_rule_renders_six_moves_where_the_polish_model_holds():
+    """The model of the cost itself: one batch of coarse pose, candidate and 6 moves; kappa is the median of all
+    12 rises and the sharpness their minimum (the flattest axis, rendered)."""
+    verdict, batches, rises = _quadratic_judge("exact")
+    assert [len(b) for b in batches] == [8]
+    a = verdict.assessment
+    assert a.kappa == pytest.approx(np.median(rises), rel=1e-9)
+    assert a.sharpness == pytest.approx(rises.min() / np.median(rises), rel=1e-9)
+    assert verdict.accepted
+
+
+def test_rule_renders_all_twelve_moves_where_the_model_is_off():
+    """A model whose ranking the rendered rises contradict (its flattest axis is the cost's steepest): the other 6
+    moves are rendered in a second batch and the rule reads all 12, as without a model."""
+    verdict, batches, rises = _quadratic_judge("wrong")
+    assert [len(b) for b in batches] == [8, 12]
+    assert verdict.assessment.kappa == pytest.approx(np.median(rises), rel=1e-9)
+    assert verdict.assessment.sharpness == pytest.approx(rises.min() / np.median(rises), rel=1e-9)
+    no_model, batches, _ = _quadratic_judge("none")
+    assert [len(b) for b in batches] == [14]
+    assert no_model.assessment == verdict.assessment
+
+
+def test_model_agrees_needs_positive_rises_of_one_scale():
+    from hgsloc_plugin.refine.trust import MODEL_SPREAD, model_agrees
+
+    pred = np.array([1.0, 1.0, 2.0, 2.0, 3.0, 3.0])
+    assert model_agrees(0.4 * pred, pred)
+    assert model_agrees(pred * np.r_[1.0, 1.0, 1.0, 1.0, 1.0, 0.99 * MODEL_SPREAD], pred)
+    assert not model_agrees(pred * np.r_[1.0, 1.0, 1.0, 1.0, 1.0, 1.01 * MODEL_SPREAD], pred)
+    assert not model_agrees(np.r_[0.0, pred[1:]], pred)
+    assert not model_agrees(np.r_[-1e-6, pred[1:]], pred)
+    assert not model_agrees(pred, np.r_[-1.0, pred[1:]])

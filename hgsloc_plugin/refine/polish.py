@@ -79,6 +79,7 @@ class PolishStats:
         stopped: "converged" (step below the threshold), "no decrease", "iterations", "trust region".
         jtj: Gauss-Newton Hessian [6, 6] of the cost, in ``xi = (w [rad], v [scene units])``, at the returned pose
             or, when the last step was taken on its line-search cost alone, at the pose one negligible step before.
+        grad: gradient [6] of the cost in ``xi`` from the same derivative pass as ``jtj``.
     """
 
     width: int
@@ -91,9 +92,10 @@ class PolishStats:
     step_px: float
     stopped: str
     jtj: np.ndarray
+    grad: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        d = {k: v for k, v in vars(self).items() if k != "jtj"}
+        d = {k: v for k, v in vars(self).items() if k not in ("jtj", "grad")}
         d["jtj"] = np.asarray(self.jtj).round(8).tolist()
         return d
 
@@ -215,7 +217,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             if failures >= max_failures:
                 stats.stopped = "no decrease"
                 break
-    stats.cost, stats.jtj = cost, H
+    stats.cost, stats.jtj, stats.grad = cost, H, g
     if not math.isfinite(stats.cost):
         stats.stopped = "no decrease"
     return pose, stats

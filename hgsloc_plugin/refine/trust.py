@@ -7,6 +7,11 @@ of one pixel of image motion around it. The candidate is returned only when it p
 ``MIN_SIGNIFICANCE`` kappa), "weak alignment" (structural costs: kappa under ``MIN_ALIGNMENT`` of the cost),
 "flat valley" (some move rises less than ``MIN_SHARPNESS`` kappa), "trust-region edge" (beyond ``EDGE_FRACTION``
 of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps).
+A polished candidate first renders 6 of the 12 moves (``model_moves``): its last polish stage's Gauss-Newton model
+ranks them, and the rule renders the pair it predicts to rise least (the flattest axis: the minimum) and the four
+at the middle of the ranking (kappa: their median). When the rendered rises do not follow the model
+(``model_agrees``: a rise at or below zero, or ratios to the prediction spread more than ``MODEL_SPREAD``), the
+other 6 are rendered too and the rule reads all 12.
 
 The uncertainty of a polished pose is ``UNCERTAINTY_SCALE^2 * cost * JtJ^-1`` in ``xi = (w, v)``
 (``Pose.perturbed_in_camera``); with a prior of known median error the returned pose is the posterior mean of the
@@ -46,6 +51,9 @@ MIN_ALIGNMENT = 0.011
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
 UNCERTAINTY_SCALE = 0.1
+#: the rendered rises follow the polish's model when their ratios to its predictions spread at most this much
+#: (1.1-1.9 at accepted snow candidates, 2.45 at the least regular refused one: ``benchmarks/trust.md``)
+MODEL_SPREAD = 2.0
 #: the least cs cost the uncertainty is scaled by: a float32 rendering of the map at its own pose matches to
 #: about 1e-7 of the cost, either side of 0
 COST_FLOOR = 1e-9
@@ -113,7 +121,7 @@ class Assessment:
 
     Attributes:
         significance: (coarse cost - best cost) / kappa: the improvement in one-pixel rises.
-        sharpness: smallest axis rise / kappa (<= 0: some 1-px move does not raise the cost).
+        sharpness: smallest rendered axis rise / kappa (<= 0: some 1-px move does not raise the cost).
         travel: largest of shift / max_shift and rotation / max_rotation from the coarse pose, in [0, 1].
         level_shift: distance between the coarse levels' best pose and the final one, in coarsest steps.
         kappa: median one-pixel rise of the cost at the best pose.
@@ -160,18 +168,21 @@ def _shape_reason(alignment: float, sharpness: float, travel: float, level_shift
 
 
 def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: float, level_shift: float, *,
-           check_alignment: bool = False) -> Assessment:
+           check_alignment: bool = False, middle: np.ndarray | None = None) -> Assessment:
     """Apply the acceptance rule.
 
     Args:
         cost_initial / cost_best: the coarse pose's and the search's best cost at the final resolution.
-        rises: [12] cost of each one-pixel axis move around the best pose minus ``cost_best``.
+        rises: [M] cost of one-pixel axis moves around the best pose minus ``cost_best``: all 12, or the ones
+            ``model_moves`` picks (the lowest is the sharpness).
         travel: fraction of the trust region used (shift or rotation, the larger).
         level_shift: in coarsest-level steps.
         check_alignment: apply the "weak alignment" test (for the structural costs cs, ssim, ncc).
+        middle: the rises kappa is the median of (``model_moves``' middle four); None: all of ``rises``.
     """
     rises = np.asarray(rises, dtype=np.float64)
-    kappa = float(np.median(rises)) if rises.size else math.nan
+    at = rises if middle is None else np.asarray(middle, dtype=np.float64)
+    kappa = float(np.median(at)) if at.size else math.nan
     drop = cost_initial - cost_best
     scale = kappa if kappa > 0 else math.inf
     significance = drop / scale
@@ -227,22 +238,33 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     ``structural``: the cost's level is comparable across images (the alignment test applies).
 
     Everything the rule may need is scored in one batch: the coarse pose and the candidate (their costs are set on
-    ``cand``), the 12 one-pixel moves, and the fusion with the prior (scored before the verdict; used only when
-    the candidate is accepted)."""
+    ``cand``), the one-pixel moves (6 of the 12 for a polished candidate, ``model_moves``; the other 6 in a second
+    batch where their rises do not follow the model), and the fusion with the prior (scored before the verdict; used
+    only when the candidate is accepted)."""
     coarse = plan.coarse_pose
     trust = rule == "trust" and lattice
     moves = _moves(cand.pose, plan, cam, pivot) if trust else []
+    model = model_moves(cand, moves, cam)
+    first = moves if model is None else [moves[i] for i in model[0]]
     uncertainty = pose_uncertainty(cand.polish[-1].jtj, cand.polish[-1].cost) if cand.polish else None
     fuses = uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None)
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):
         fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
-    costs = scorer([coarse, cand.pose, *moves] + ([fusion[0]] if fusion is not None else []))
+    costs = scorer([coarse, cand.pose, *first] + ([fusion[0]] if fusion is not None else []))
     cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
     fused_cost = float(costs[-1]) if fusion is not None else math.nan
     rejected, assessment, confidence = None, None, 0.0
     if trust:
-        assessment = _assess(cand, plan, costs[2:2 + len(moves)] - cand.cost, structural)
+        rises, middle = costs[2:2 + len(first)] - cand.cost, None
+        if model is not None:
+            if model_agrees(rises, model[1]):
+                middle = rises[2:]
+            else:  # the other six too (the scorer keeps the rendered ones' costs)
+                logger.debug("query %s: the rule renders all 12 moves (rises %s off the model %s)", name, rises,
+                             model[1])
+                rises = scorer(moves) - cand.cost
+        assessment = _assess(cand, plan, rises, structural, middle)
         rejected, confidence = assessment.rejected, assessment.confidence
     elif not cand.cost < cand.cost_initial:
         rejected = "no improvement"
@@ -274,11 +296,43 @@ def _moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
     return [space.pose(k) for k in space.neighbours((0,) * 6)]
 
 
-def _assess(cand: Candidate, plan: Plan, rises: np.ndarray, structural: bool) -> Assessment:
-    """:func:`assess` of the candidate from the rises [12] of its one-pixel moves."""
+def model_moves(cand: Candidate, moves: list[Pose], cam: Camera) -> tuple[list[int], np.ndarray] | None:
+    """The 6 of the 12 one-pixel ``moves`` the rule renders first for ``cand``, and their predicted rises [6]: the
+    two its last polish stage's Gauss-Newton model (``g.xi + xi' JtJ xi / 2``) predicts to rise least, then the
+    four it ranks 5th to 8th (the middle, whose median is kappa). None (render all 12) without a finite model at
+    ``cam``'s size."""
+    if len(moves) != 12 or not cand.polish:
+        return None
+    last = cand.polish[-1]
+    if (last.width, last.height) != (cam.width, cam.height) or last.grad is None:
+        return None
+    H, g = np.asarray(last.jtj, np.float64), np.asarray(last.grad, np.float64)
+    if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+        return None
+    xi = np.array([cand.pose.offset_in_camera(m) for m in moves])
+    predicted = xi @ g + 0.5 * np.einsum("ni,ij,nj->n", xi, H, xi)
+    order = np.argsort(predicted, kind="stable")
+    picked = [int(i) for i in (*order[:2], *order[4:8])]
+    return picked, predicted[picked]
+
+
+def model_agrees(rises: np.ndarray, predicted: np.ndarray) -> bool:
+    """Whether rendered ``rises`` [M] follow the model's ``predicted`` [M]: every one positive and their ratios
+    within a factor ``MODEL_SPREAD`` of each other."""
+    rises, predicted = np.asarray(rises, np.float64), np.asarray(predicted, np.float64)
+    if not (np.all(rises > 0) and np.all(predicted > 0)):
+        return False
+    ratio = rises / predicted
+    return bool(ratio.max() <= MODEL_SPREAD * ratio.min())
+
+
+def _assess(cand: Candidate, plan: Plan, rises: np.ndarray, structural: bool,
+            middle: np.ndarray | None = None) -> Assessment:
+    """:func:`assess` of the candidate from the rises of its rendered one-pixel moves (``middle``: as there)."""
     best = cand.pose
     step_r, step_t = plan.levels[0]
     after = cand.after_coarse
     level_shift = max(float(np.linalg.norm(after.centre() - best.centre())) / max(step_t, 1e-12),
                       rotation_angle_deg(after.R, best.R) / max(step_r, 1e-12))
-    return assess(cand.cost_initial, cand.cost, rises, plan.travel(best), level_shift, check_alignment=structural)
+    return assess(cand.cost_initial, cand.cost, rises, plan.travel(best), level_shift, check_alignment=structural,
+                  middle=middle)

@@ -38,11 +38,9 @@ def record(case: str, noise: list[float]) -> list[tuple[np.ndarray, np.ndarray]]
     out, model_moves = [], trust.model_moves
 
     def all_twelve(cand, moves, cam_judge):  # render all 12; keep the model's prediction of each
-        picked = model_moves(cand, moves, cam_judge)
-        if picked is not None:
-            H, g = np.asarray(cand.polish[-1].jtj), np.asarray(cand.polish[-1].grad)
-            xi = np.array([cand.pose.offset_in_camera(m) for m in moves])
-            pending.append(xi @ g + 0.5 * np.einsum("ni,ij,nj->n", xi, H, xi))
+        predicted = trust.predicted_rises(cand, moves, cam_judge)
+        if predicted is not None:
+            pending.append(predicted)
         return None
 
     assess = trust._assess
@@ -69,14 +67,13 @@ def record(case: str, noise: list[float]) -> list[tuple[np.ndarray, np.ndarray]]
 def row(case: str, recs: list[tuple[np.ndarray, np.ndarray]]) -> str:
     corr, flattest, kappa_err, flips, off = [], 0, [], 0, 0
     for rises, pred in recs:
-        order = np.argsort(pred, kind="stable")
-        picked = np.r_[order[:2], order[4:8]]
+        picked = trust.picked_moves(pred)
         corr.append(float(np.corrcoef(rises, pred)[0, 1]))
-        flattest += int(np.argmin(rises) in order[:2])
+        flattest += int(np.argmin(rises) in picked[:2])
         if not trust.model_agrees(rises[picked], pred[picked]):
             off += 1
             continue
-        kappa, kappa6 = np.median(rises), np.median(rises[order[4:8]])
+        kappa, kappa6 = np.median(rises), np.median(rises[picked[2:]])
         kappa_err.append(abs(kappa6 / kappa - 1.0))
         sharp, sharp6 = rises.min() / kappa, rises[picked].min() / kappa6
         flips += int((sharp >= trust.MIN_SHARPNESS) != (sharp6 >= trust.MIN_SHARPNESS))

@@ -296,11 +296,9 @@ def _moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
     return [space.pose(k) for k in space.neighbours((0,) * 6)]
 
 
-def model_moves(cand: Candidate, moves: list[Pose], cam: Camera) -> tuple[list[int], np.ndarray] | None:
-    """The 6 of the 12 one-pixel ``moves`` the rule renders first for ``cand``, and their predicted rises [6]: the
-    two its last polish stage's Gauss-Newton model (``g.xi + xi' JtJ xi / 2``) predicts to rise least, then the
-    four it ranks 5th to 8th (the middle, whose median is kappa). None (render all 12) without a finite model at
-    ``cam``'s size."""
+def predicted_rises(cand: Candidate, moves: list[Pose], cam: Camera) -> np.ndarray | None:
+    """The rises [12] of the 12 one-pixel ``moves`` around ``cand`` that its last polish stage's Gauss-Newton model
+    predicts (``g.xi + xi' JtJ xi / 2``); None without a finite model at ``cam``'s size."""
     if len(moves) != 12 or not cand.polish:
         return None
     last = cand.polish[-1]
@@ -310,9 +308,23 @@ def model_moves(cand: Candidate, moves: list[Pose], cam: Camera) -> tuple[list[i
     if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
         return None
     xi = np.array([cand.pose.offset_in_camera(m) for m in moves])
-    predicted = xi @ g + 0.5 * np.einsum("ni,ij,nj->n", xi, H, xi)
+    return xi @ g + 0.5 * np.einsum("ni,ij,nj->n", xi, H, xi)
+
+
+def picked_moves(predicted: np.ndarray) -> list[int]:
+    """Indices of the 6 moves the rule renders first, from their ``predicted`` rises [12]: the two ranked lowest
+    (the flattest axis), then the four ranked 5th to 8th (the middle, whose median is kappa)."""
     order = np.argsort(predicted, kind="stable")
-    picked = [int(i) for i in (*order[:2], *order[4:8])]
+    return [int(i) for i in (*order[:2], *order[4:8])]
+
+
+def model_moves(cand: Candidate, moves: list[Pose], cam: Camera) -> tuple[list[int], np.ndarray] | None:
+    """The 6 of the 12 one-pixel ``moves`` the rule renders first for ``cand`` (:func:`picked_moves` of
+    :func:`predicted_rises`) and their predicted rises [6]; None (render all 12) without a model."""
+    predicted = predicted_rises(cand, moves, cam)
+    if predicted is None:
+        return None
+    picked = picked_moves(predicted)
     return picked, predicted[picked]
 
 

@@ -1,7 +1,8 @@
 """The one place that chooses and starts the Taichi backend.
 
 ``init(arch="auto" | "cpu" | "cuda")`` starts Taichi once per process; the environment variable
-``HGSLOC_ARCH`` gives the default. "auto" takes CUDA when Taichi finds it, else the CPU. Kernels are
+``HGSLOC_ARCH`` gives the default. "auto" takes CUDA when Taichi finds it, else the CPU; ``HGSLOC_CPU_THREADS``
+caps the CPU backend's threads (e.g. several processes sharing one machine's cores). Kernels are
 cached on disk by Taichi's offline cache (``HGSLOC_CACHE_DIR``, default ``~/.cache/hgsloc_plugin/taichi``)
 so a second process does not recompile them, and Taichi's front end, which still runs in every process, is
 memoised where it repeats itself (``kernel_load.py``).
@@ -36,19 +37,36 @@ def requested_arch(arch: str | None = None) -> str:
     return requested
 
 
+def requested_cpu_threads() -> int | None:
+    """``HGSLOC_CPU_THREADS`` as a positive int, or None when unset or empty."""
+    text = os.environ.get("HGSLOC_CPU_THREADS", "").strip()
+    if not text:
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"HGSLOC_CPU_THREADS must be a positive integer, got {text!r}")
+    return n
+
+
 def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | None = None) -> str:
     """Start Taichi on the chosen backend; later calls return the backend already chosen.
 
     Args:
         arch: "auto", "cpu" or "cuda"; None reads ``HGSLOC_ARCH`` (default "auto").
         debug: Taichi debug mode (bounds checks), for development only.
-        cpu_threads: number of CPU threads for the CPU backend (default: all cores).
+        cpu_threads: number of CPU threads for the CPU backend; None reads ``HGSLOC_CPU_THREADS`` (default: all
+            cores).
 
     Returns:
         The backend in use, "cpu" or "cuda".
     """
     global _ARCH
     requested = requested_arch(arch)
+    if cpu_threads is None:
+        cpu_threads = requested_cpu_threads()
     if _ARCH is not None:
         if requested not in ("auto", _ARCH):
             raise RuntimeError(

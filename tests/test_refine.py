@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -253,6 +256,21 @@ def test_backend_arch_validation(monkeypatch):
     monkeypatch.setenv("HGSLOC_ARCH", "bogus")
     with pytest.raises(ValueError, match="HGSLOC_ARCH"):
         backend.init()
+    monkeypatch.setenv("HGSLOC_ARCH", "cpu")
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv("HGSLOC_CPU_THREADS", bad)
+        with pytest.raises(ValueError, match="HGSLOC_CPU_THREADS"):
+            backend.init()
+
+
+def test_cpu_threads_from_the_environment():
+    """``HGSLOC_CPU_THREADS`` caps Taichi's CPU threads in a new process (an explicit ``cpu_threads`` wins)."""
+    code = ("import hgsloc_plugin as hp, taichi as ti; hp.init('cpu'); "
+            "print(ti.lang.impl.current_cfg().cpu_max_num_threads)")
+    for n in ("1", "3"):
+        env = dict(os.environ, HGSLOC_CPU_THREADS=n, HGSLOC_ARCH="cpu")
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        assert out.stdout.split()[-1] == n
 
 
 @pytest.mark.slow

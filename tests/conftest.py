@@ -12,9 +12,9 @@ os.environ.setdefault("HGSLOC_ARCH", "cpu")
 
 
 def _share_cores() -> None:
-    """Under pytest-xdist, each worker process (and the CLI and Ray processes it starts) takes its share of the
-    cores for Taichi and torch: two workers of two threads each on two cores wait on each other's threads at every
-    parallel loop's join (the suite ran ~15 % slower)."""
+    """Under pytest-xdist, each worker process (and the CLI processes it starts) takes its share of the cores for
+    Taichi and torch: two workers of two threads each on two cores wait on each other's threads at every parallel
+    loop's join (the suite ran about 10 % slower)."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
         share = max(1, (os.cpu_count() or 1) // workers)

@@ -265,12 +265,13 @@ def test_backend_arch_validation(monkeypatch):
 
 def test_cpu_threads_from_the_environment():
     """``HGSLOC_CPU_THREADS`` caps Taichi's CPU threads in a new process (an explicit ``cpu_threads`` wins)."""
-    code = ("import hgsloc_plugin as hp, taichi as ti; hp.init('cpu'); "
+    code = ("import hgsloc_plugin as hp, taichi as ti; hp.init('cpu'{}); "
             "print(ti.lang.impl.current_cfg().cpu_max_num_threads)")
-    for n in ("1", "3"):
+    for n, explicit, want in (("1", "", "1"), ("3", "", "3"), ("1", ", cpu_threads=2", "2")):
         env = dict(os.environ, HGSLOC_CPU_THREADS=n, HGSLOC_ARCH="cpu")
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-        assert out.stdout.split()[-1] == n
+        out = subprocess.run([sys.executable, "-c", code.format(explicit)], env=env, capture_output=True, text=True,
+                             check=True)
+        assert out.stdout.split()[-1] == want
 
 
 @pytest.mark.slow

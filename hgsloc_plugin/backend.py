@@ -2,10 +2,10 @@
 
 ``init(arch="auto" | "cpu" | "cuda")`` starts Taichi once per process; the environment variable
 ``HGSLOC_ARCH`` gives the default. "auto" takes CUDA when Taichi finds it, else the CPU; ``HGSLOC_CPU_THREADS``
-caps the CPU backend's threads (e.g. several processes sharing one machine's cores). Kernels are
-cached on disk by Taichi's offline cache (``HGSLOC_CACHE_DIR``, default ``~/.cache/hgsloc_plugin/taichi``)
-so a second process does not recompile them, and Taichi's front end, which still runs in every process, is
-memoised where it repeats itself (``kernel_load.py``).
+caps the CPU backend's threads (e.g. several processes sharing one machine's cores). Kernels are cached on disk
+by Taichi's offline cache (``HGSLOC_CACHE_DIR``, default ``~/.cache/hgsloc_plugin/taichi``; one set per CPU
+thread count) so a second process does not recompile them, and Taichi's front end, which still runs in every
+process, is memoised where it repeats itself (``kernel_load.py``).
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -188,8 +189,12 @@ def test_hloc_step(tiny_case, tmp_path):
 def test_demo_runs_and_improves(tmp_path):
     from hgsloc_plugin.demo.run import run_demo
 
+    t0 = time.perf_counter()
     s = run_demo(tmp_path / "demo", queries=3, noise=("3cm,1deg",), preset="fast", progress=False)
+    wall = time.perf_counter() - t0
     row = s["rows"][0]
+    # s/query is the file's time over its queries, not each query's own time (those overlap in a lockstep batch)
+    assert 0 < 3 * row["seconds_per_query"] <= wall
     assert row["after"]["median_translation_cm"] < row["before"]["median_translation_cm"]
     assert row["after"]["median_rotation_deg"] < row["before"]["median_rotation_deg"]
     figs = sorted(p.name for p in (tmp_path / "demo" / "figures").iterdir())

@@ -61,10 +61,10 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
         coarse_path = out / f"coarse_{tag}.txt"
         _write_pose_file(coarse_path, coarse)
         refined_path = out / f"refined_{tag}.txt"
-        t0 = time.perf_counter()
+        start = time.perf_counter()
         rep = refine_pose_file(scene, coarse_path, out / "images", from_focal(cam.fx), refined_path, config=config,
                                progress=progress, gt_variant="synthetic", settings={"noise": spec})
-        elapsed = time.perf_counter() - t0  # the whole file: queries refined together overlap in time
+        elapsed = time.perf_counter() - start  # the whole file: queries refined together overlap in time
         ev0 = evaluate(read_poses(coarse_path), gt)
         ev1 = evaluate(read_poses(refined_path), gt)
         q = rep["queries"]

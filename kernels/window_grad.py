@@ -11,10 +11,13 @@ so the cost is a weighted least-squares sum of the windowed zero-mean difference
 
     dN_p = 2 (sum_k w_pk d_k J_k - dbar_p Jbar_p),   dD_p = 2 (sum_k w_pk r_k J_k - m_p Jbar_p)
     grad = 1/(3n) sum_pc (dN_p / D_p - N_p dD_p / D_p^2)                         (exact gradient of the cost)
-    JtJ  = 1/(3n) sum_pc 2 (sum_k w_pk J_k J_k^T - Jbar_p Jbar_p^T) / D_p         (Gauss-Newton, weights fixed)
+    JtJ  = 1/(3n) sum_pc 2 (sum_k w_pk J_k J_k^T - Jbar_p Jbar_p^T) max(cs_p, 0) / D_p       (Gauss-Newton)
 
-JtJ is the exact Hessian at a zero residual. The sums over k of per-pixel weights are regrouped with the
-window's transpose: ``sum_p A_p sum_k w_pk X_k = sum_k X_k (W^T A)_k``, so only scalar weight images are
+As N'' = D'' (both 2 (sum_k w_pk J_k J_k^T - Jbar_p Jbar_p^T) without the render's second derivatives), the
+Hessian of N_p / D_p is N'' (1 / D_p - N_p / D_p^2) = N'' cs_p / D_p plus rank-two terms in dN_p and dD_p,
+which JtJ drops; cs_p is clamped at 0 so that JtJ stays positive semi-definite. JtJ is the exact Hessian at a
+zero residual (cs_p = 1, N_p = 0, dN_p = 0). The sums over k of per-pixel weights are regrouped with the window's
+transpose: ``sum_p A_p sum_k w_pk X_k = sum_k X_k (W^T A)_k``, so only scalar weight images are
 filtered (``window_filter(transpose=True)``) and the 6x6 products are formed once per pixel.
 Everything stays on the device (one launch, ``cs_system_kernel``); rows are summed per pose in float64 by
 ``blend.reduce_rows`` (fixed order).
@@ -33,6 +36,7 @@ from .window import RADIUS, contrast_structure, horizontal, window_weights
 _W = window_weights()
 
 NH = NXI * (NXI + 1) // 2  # upper triangle of JtJ, row-major
+NW = 9  # per-pixel weight channels: (1 / D, N / D^2) per colour channel, then max(cs, 0) / D per channel
 NSYS = NH + NXI  # per-row record: JtJ triangle, then the gradient
 ROW_SYS = 2  # in the per-row sums [B, H, 1, ROW_SYS + NSYS]: cs_terms' two, then the system's (one reduction)
 _CUM = [sum(_W[:m + 1]) for m in range(2 * RADIUS + 1)]  # sum_{j <= m} w_j
@@ -43,7 +47,8 @@ _TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
 def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(), mask_alpha,
              num_poses, weights: ti.template(), means: ti.template(), rows: ti.template()):
     """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal``):
-    weights [B, H, W, 6] (A = 1/D, B = N/D^2 per channel, 0 on invalid pixels), means [B, H, W, 6]
+    weights [B, H, W, NW] (A = 1/D, B = N/D^2 per channel c at 2c, 2c + 1; G = max(cs, 0) / D at 6 + c; 0 on
+    invalid pixels), means [B, H, W, 6]
     (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, >= 2]: fields 0, 1 = (sum of the channel-mean cs,
     valid pixels), the same numbers as ``window._vertical_cost(False)``."""
     H = hbuf.shape[1]
@@ -63,11 +68,14 @@ def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.templat
                     v += cs
                     a = 0.0
                     bw = 0.0
+                    gw = 0.0
                     if valid:
                         a = 1.0 / den
                         bw = (1.0 - cs) / den
+                        gw = ti.max(cs, 0.0) / den
                     weights[b, y, x, 2 * c] = a
                     weights[b, y, x, 2 * c + 1] = bw
+                    weights[b, y, x, 6 + c] = gw
                     means[b, y, x, 2 * c] = m
                     means[b, y, x, 2 * c + 1] = m - mq
                 if valid:
@@ -137,7 +145,7 @@ def system(rgb: ti.template(), qstats: ti.template(), query_index: ti.template()
 
     Inputs: rgb [B, H, W, 3], qstats [Q, H, W, 3, NQ] (the query pixel is field 2) read at slot
     query_index [B], drgb and its windowed mean
-    jbar [B, H, W, 3 * 6], weights and their transposed window what [B, H, W, 6], means [B, H, W, 6].
+    jbar [B, H, W, 3 * 6], weights and their transposed window what [B, H, W, NW], means [B, H, W, 6].
     """
 
     H = rgb.shape[1]
@@ -158,11 +166,13 @@ def system(rgb: ti.template(), qstats: ti.template(), query_index: ti.template()
                     bw = weights[b, y, x, 2 * c + 1]
                     r = rgb[b, y, x, c]
                     d = r - qstats[qi, y, x, c, 2]
+                    gh = what[b, y, x, 6 + c]
+                    gw = weights[b, y, x, 6 + c]
                     gk = (d * ah - r * bh) * Jk - (a * means[b, y, x, 2 * c + 1] - bw * means[b, y, x, 2 * c]) * Jb
                     for i in ti.static(range(NXI)):
                         for j in ti.static(range(i, NXI)):
                             idx = ti.static(i * NXI - i * (i - 1) // 2 + (j - i))
-                            acc[idx] += ah * Jk[i] * Jk[j] - a * Jb[i] * Jb[j]
+                            acc[idx] += gh * Jk[i] * Jk[j] - gw * Jb[i] * Jb[j]
                         acc[NH + i] += gk[i]
             for s in ti.static(range(NSYS)):
                 rows[b, y, 0, ROW_SYS + s] = acc[s]
@@ -173,12 +183,12 @@ def cs_system_kernel():
     """The cs cost's Gauss-Newton system of B poses in one launch, from their renderings rgb [B, H, W, 3], alpha
     [B, H, W] and colour derivatives drgb [B, H, W, 3 * NXI] against the query statistics at ``query_index``:
     the horizontal window pass (into h), the per-pixel terms (weights, means, the cs sums into rows' fields 0-1),
-    the windowed derivatives (tmpj, jbar) and the transposed window of the weights (tmp6, what), the rows of
+    the windowed derivatives (tmpj, jbar) and the transposed window of the weights (tmpw, what), the rows of
     the JtJ triangle and the gradient (rows' fields from ``ROW_SYS``), then every field summed per pose into
     ``out`` [B, ROW_SYS + NSYS] float64 (a host array: no read-back launch). Scratch shapes: ``WindowGradBuffers``.
     """
     rows_of_drgb, cols_of_jbar = window_filter(1, False, 3 * NXI), window_filter(0, False, 3 * NXI)
-    cols_of_weights, rows_of_what = window_filter(0, True, 6), window_filter(1, True, 6)
+    cols_of_weights, rows_of_what = window_filter(0, True, NW), window_filter(1, True, NW)
     f32 = ti.f32
 
     @ti.kernel
@@ -187,15 +197,15 @@ def cs_system_kernel():
                   query_index: ti.types.ndarray(dtype=ti.i32, ndim=1), mask_alpha: f32, num_poses: ti.i32,
                   h: ti.types.ndarray(dtype=f32, ndim=5), weights: ti.types.ndarray(dtype=f32, ndim=4),
                   means: ti.types.ndarray(dtype=f32, ndim=4), tmpj: ti.types.ndarray(dtype=f32, ndim=4),
-                  jbar: ti.types.ndarray(dtype=f32, ndim=4), tmp6: ti.types.ndarray(dtype=f32, ndim=4),
+                  jbar: ti.types.ndarray(dtype=f32, ndim=4), tmpw: ti.types.ndarray(dtype=f32, ndim=4),
                   what: ti.types.ndarray(dtype=f32, ndim=4), rows: ti.types.ndarray(dtype=f32, ndim=4),
                   out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
         horizontal(rgb, qstats, query_index, num_poses, h)
         cs_terms(h, qstats, query_index, alpha, mask_alpha, num_poses, weights, means, rows)
         rows_of_drgb(drgb, num_poses, tmpj)
         cols_of_jbar(tmpj, num_poses, jbar)
-        cols_of_weights(weights, num_poses, tmp6)
-        rows_of_what(tmp6, num_poses, what)
+        cols_of_weights(weights, num_poses, tmpw)
+        rows_of_what(tmpw, num_poses, what)
         system(rgb, qstats, query_index, drgb, jbar, weights, what, means, num_poses, rows)
         reduce_rows(rows, num_poses, out)
 

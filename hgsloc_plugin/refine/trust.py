@@ -50,6 +50,7 @@ MIN_SHARPNESS = 0.02
 MIN_ALIGNMENT = 0.011
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
+#: sigma of a polished pose per unit of sqrt(cost * JtJ^-1), calibrated on real photos (``benchmarks/defaults.md``)
 UNCERTAINTY_SCALE = 0.1
 #: the rendered rises follow the polish's model when their ratios to its predictions spread at most this much
 #: (1.1-1.9 at accepted snow candidates, 2.45 at the least regular refused one: ``benchmarks/trust.md``)

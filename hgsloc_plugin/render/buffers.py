@@ -178,20 +178,20 @@ class WindowGradBuffers:
     """Scratch of the cs gradient (``kernels/window_grad.py``) for B poses at H x W."""
 
     h: ti.Ndarray  # [B, H, W, 3, 3]
-    wts: ti.Ndarray  # [B, H, W, 6]
+    wts: ti.Ndarray  # [B, H, W, window_grad.NW]
     means: ti.Ndarray  # [B, H, W, 6]
     rows: ti.Ndarray  # [B, H, 1, ROW_SYS + NSYS]: per row, cs_terms' sums then the system's
-    tmp6: ti.Ndarray  # [B, H, W, 6]
-    hat: ti.Ndarray  # [B, H, W, 6]
+    tmpw: ti.Ndarray  # [B, H, W, window_grad.NW]
+    hat: ti.Ndarray  # [B, H, W, window_grad.NW]
     tmpj: ti.Ndarray  # [B, H, W, 3 * NXI]
     jbar: ti.Ndarray  # [B, H, W, 3 * NXI]
 
     @classmethod
     def allocate(cls, B: int, H: int, W: int) -> WindowGradBuffers:
         nd = ti.ndarray
-        k = window_grad.ROW_SYS + window_grad.NSYS
-        return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
-                   nd(ti.f32, (B, H, 1, k)), nd(ti.f32, (B, H, W, 6)), nd(ti.f32, (B, H, W, 6)),
+        k, nw = window_grad.ROW_SYS + window_grad.NSYS, window_grad.NW
+        return cls(nd(ti.f32, (B, H, W, 3, 3)), nd(ti.f32, (B, H, W, nw)), nd(ti.f32, (B, H, W, 6)),
+                   nd(ti.f32, (B, H, 1, k)), nd(ti.f32, (B, H, W, nw)), nd(ti.f32, (B, H, W, nw)),
                    nd(ti.f32, (B, H, W, 3 * NXI)), nd(ti.f32, (B, H, W, 3 * NXI)))
 
 

@@ -79,7 +79,7 @@ def pose_gradient(r, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.
         w = g.window
         out = np.empty((n, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
         window_grad.cs_system_kernel()(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h, w.wts,
-                                       w.means, w.tmpj, w.jbar, w.tmp6, w.hat, w.rows, out)
+                                       w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
         sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
         scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
         hess = np.zeros((n, NXI, NXI))

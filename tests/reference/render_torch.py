@@ -120,11 +120,12 @@ def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0), dtype=torc
 
 
 def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma: float = 1.5, radius: int = 5,
-               fixed_den: torch.Tensor | None = None) -> torch.Tensor:
+               gn_weight: torch.Tensor | None = None) -> torch.Tensor:
     """Per-pixel channel-mean SSIM or cs [H, W] of tensors r, q [H, W, 3] (differentiable in r).
 
-    ``fixed_den``: use this [1, 3, H, W] for cs's denominator s_rr + s_qq + C2 (the Gauss-Newton form with the
-    weights held, as kernels/window_grad.py's JtJ); ``cs_denominator`` gives it.
+    ``gn_weight``: instead of cs, ``1 - gn_weight * (s_rr + s_qq - 2 s_rq)`` with this weight [1, 3, H, W] held
+    (the Gauss-Newton form of kernels/window_grad.py's JtJ, whose second derivative in r is the JtJ's);
+    ``cs_gauss_newton_weight`` gives it.
     """
     import torch.nn.functional as F
 
@@ -143,17 +144,19 @@ def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma:
     s_qq = (filt(q * q) - mq * mq).clamp(min=0)
     s_rq = filt(r * q) - mr * mq
     c1, c2 = 0.01 ** 2, 0.03 ** 2
-    if fixed_den is None:
+    if gn_weight is None:
         v = (2 * s_rq + c2) / (s_rr + s_qq + c2)
-    else:  # 1 - cs = (s_rr + s_qq - 2 s_rq) / den, with den held
-        v = 1 - (s_rr + s_qq - 2 * s_rq) / fixed_den
+    else:  # 1 - cs = (s_rr + s_qq - 2 s_rq) / den, with the weight on the numerator held
+        v = 1 - (s_rr + s_qq - 2 * s_rq) * gn_weight
     if luminance:
         v = v * (2 * mr * mq + c1) / (mr * mr + mq * mq + c1)
     return v.mean(1)[0]
 
 
-def cs_denominator(r: torch.Tensor, q: torch.Tensor, sigma: float = 1.5, radius: int = 5) -> torch.Tensor:
-    """cs's denominator s_rr + s_qq + C2 [1, 3, H, W] at the rendering r (no gradient)."""
+def cs_gauss_newton_weight(r: torch.Tensor, q: torch.Tensor, sigma: float = 1.5, radius: int = 5) -> torch.Tensor:
+    """The Gauss-Newton weight max(cs, 0) / D [1, 3, H, W] at the rendering r (no gradient), D = s_rr + s_qq + C2
+    cs's denominator: with N = s_rr + s_qq - 2 s_rq and N'' = D'', the second derivative of 1 - cs = N / D
+    without the rank-two terms in N' and D' is N'' (1 / D - N / D^2) = N'' cs / D."""
     import torch.nn.functional as F
 
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
@@ -167,7 +170,9 @@ def cs_denominator(r: torch.Tensor, q: torch.Tensor, sigma: float = 1.5, radius:
     with torch.no_grad():
         rr, qq = r.permute(2, 0, 1)[None], q.permute(2, 0, 1)[None]
         mr, mq = filt(rr), filt(qq)
-        return (filt(rr * rr) - mr * mr).clamp(min=0) + (filt(qq * qq) - mq * mq).clamp(min=0) + 0.03 ** 2
+        den = (filt(rr * rr) - mr * mr).clamp(min=0) + (filt(qq * qq) - mq * mq).clamp(min=0) + 0.03 ** 2
+        cs = (2 * (filt(rr * qq) - mr * mq) + 0.03 ** 2) / den
+        return cs.clamp(min=0) / den
 
 
 def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alpha: float = 0.0,

@@ -119,14 +119,12 @@ def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0), dtype=torc
     return blend(proj, lists, camera, background)
 
 
-def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma: float = 1.5, radius: int = 5,
-               gn_weight: torch.Tensor | None = None) -> torch.Tensor:
-    """Per-pixel channel-mean SSIM or cs [H, W] of tensors r, q [H, W, 3] (differentiable in r).
+C1, C2 = 0.01 ** 2, 0.03 ** 2
 
-    ``gn_weight``: instead of cs, ``1 - gn_weight * (s_rr + s_qq - 2 s_rq)`` with this weight [1, 3, H, W] held
-    (the Gauss-Newton form of kernels/window_grad.py's JtJ, whose second derivative in r is the JtJ's);
-    ``cs_gauss_newton_weight`` gives it.
-    """
+
+def _window_stats(r: torch.Tensor, q: torch.Tensor, sigma: float, radius: int):
+    """Windowed means and (co)variances (mr, mq, s_rr, s_qq, s_rq), each [1, 3, H, W], of r, q [H, W, 3]: a 2D
+    float64 convolution with the (2 radius + 1)^2 Gaussian, replicate padding (differentiable in r)."""
     import torch.nn.functional as F
 
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
@@ -140,16 +138,24 @@ def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma:
         return F.conv2d(F.pad(t, (radius,) * 4, mode="replicate"), k2, groups=3)
 
     mr, mq = filt(r), filt(q)
-    s_rr = (filt(r * r) - mr * mr).clamp(min=0)
-    s_qq = (filt(q * q) - mq * mq).clamp(min=0)
-    s_rq = filt(r * q) - mr * mq
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return mr, mq, (filt(r * r) - mr * mr).clamp(min=0), (filt(q * q) - mq * mq).clamp(min=0), filt(r * q) - mr * mq
+
+
+def window_map(r: torch.Tensor, q: torch.Tensor, luminance: bool = False, sigma: float = 1.5, radius: int = 5,
+               gn_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-pixel channel-mean SSIM or cs [H, W] of tensors r, q [H, W, 3] (differentiable in r).
+
+    ``gn_weight``: instead of cs, ``1 - gn_weight * (s_rr + s_qq - 2 s_rq)`` with this weight [1, 3, H, W] held
+    (the Gauss-Newton form of kernels/window_grad.py's JtJ, whose second derivative in r is the JtJ's);
+    ``cs_gauss_newton_weight`` gives it.
+    """
+    mr, mq, s_rr, s_qq, s_rq = _window_stats(r, q, sigma, radius)
     if gn_weight is None:
-        v = (2 * s_rq + c2) / (s_rr + s_qq + c2)
+        v = (2 * s_rq + C2) / (s_rr + s_qq + C2)
     else:  # 1 - cs = (s_rr + s_qq - 2 s_rq) / den, with the weight on the numerator held
         v = 1 - (s_rr + s_qq - 2 * s_rq) * gn_weight
     if luminance:
-        v = v * (2 * mr * mq + c1) / (mr * mr + mq * mq + c1)
+        v = v * (2 * mr * mq + C1) / (mr * mr + mq * mq + C1)
     return v.mean(1)[0]
 
 
@@ -157,22 +163,10 @@ def cs_gauss_newton_weight(r: torch.Tensor, q: torch.Tensor, sigma: float = 1.5,
     """The Gauss-Newton weight max(cs, 0) / D [1, 3, H, W] at the rendering r (no gradient), D = s_rr + s_qq + C2
     cs's denominator: with N = s_rr + s_qq - 2 s_rq and N'' = D'', the second derivative of 1 - cs = N / D
     without the rank-two terms in N' and D' is N'' (1 / D - N / D^2) = N'' cs / D."""
-    import torch.nn.functional as F
-
-    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    g = torch.exp(-0.5 * (x / sigma) ** 2)
-    g = g / g.sum()
-    k2 = (g[:, None] * g[None, :])[None, None].repeat(3, 1, 1, 1)
-
-    def filt(t):
-        return F.conv2d(F.pad(t, (radius,) * 4, mode="replicate"), k2, groups=3)
-
     with torch.no_grad():
-        rr, qq = r.permute(2, 0, 1)[None], q.permute(2, 0, 1)[None]
-        mr, mq = filt(rr), filt(qq)
-        den = (filt(rr * rr) - mr * mr).clamp(min=0) + (filt(qq * qq) - mq * mq).clamp(min=0) + 0.03 ** 2
-        cs = (2 * (filt(rr * qq) - mr * mq) + 0.03 ** 2) / den
-        return cs.clamp(min=0) / den
+        _, _, s_rr, s_qq, s_rq = _window_stats(r, q, sigma, radius)
+        den = s_rr + s_qq + C2
+        return ((2 * s_rq + C2) / den).clamp(min=0) / den
 
 
 def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alpha: float = 0.0,

@@ -15,6 +15,8 @@ there get a 5 % bound and everything else 1 %.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -197,6 +199,42 @@ def test_lm_converges_from_a_subpixel_offset_to_well_below_the_finest_step(name)
     assert err_px(pose) < 0.03, (e0, err_px(pose), st)
     assert st.cost < st.cost_start and st.accepted_steps >= 1
     assert step_pixels(np.zeros(6), f, depth) == 0.0
+
+
+def test_the_rule_reuses_the_render_of_the_polished_pose():
+    """The polish reports its returned pose's plain-render cost (``cost_rendered``, its line search's), bit for bit
+    the scorer's own, and the rule then renders the coarse pose and the one-pixel moves but not the candidate."""
+    from types import SimpleNamespace
+
+    from hgsloc_plugin.refine.routes import Candidate
+    from hgsloc_plugin.refine.scorer import Scorer
+    from hgsloc_plugin.refine.trust import judge
+
+    scene, cam, T = cost_case("room")
+    r = get_renderer(scene)
+    img = degrade(hp.render(scene, cam, T), np.random.default_rng(0))
+    f, depth = 0.5 * (cam.fx + cam.fy), median_depth(scene, cam, T)
+    start = T.perturbed_in_camera([1.5 / f, -1.0 / f, 0.5 / f], [depth / f, 0.5 * depth / f, 0.0])
+    pose, st = polish(r, cam, r.upload_window_query(img), start, depth=depth, iterations=10, allowed=lambda p: True)
+    assert np.isfinite(st.cost_rendered) and st.accepted_steps >= 1
+    fresh = Scorer(r, "cs", (0.0, 0.0, 0.0), 0.0)
+    fresh.set_query(cam, img)
+    assert fresh([pose])[0] == st.cost_rendered
+
+    scorer = Scorer(r, "cs", (0.0, 0.0, 0.0), 0.0)
+    scorer.set_query(cam, img)
+    rendered, score = [], scorer._score
+    scorer._score = lambda poses: rendered.extend(p.as_array().tobytes() for p in poses) or score(poses)
+    plan = SimpleNamespace(coarse_pose=start, prior_error=None, prior_error_deg=None, depth=depth,
+                           levels=((1.0, 0.1),), travel=lambda p: 0.1)
+    cand = Candidate("gradient", pose, math.nan, math.nan, start, polish=[st])
+    judge(cand, plan, scorer, cam, rule="trust", lattice=True, structural=True, pivot=True)
+    assert cand.cost == st.cost_rendered
+    def was_rendered(p):
+        return p.as_array().tobytes() in rendered
+
+    assert was_rendered(start) and not was_rendered(pose)
+    assert len(rendered) in (7, 13)  # the coarse pose and 6 (or all 12) moves
 
 
 class _QuadraticCost:

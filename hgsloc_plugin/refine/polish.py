@@ -80,6 +80,9 @@ class PolishStats:
         jtj: Gauss-Newton Hessian [6, 6] of the cost, in ``xi = (w [rad], v [scene units])``, at the returned pose
             or, when the last step was taken on its line-search cost alone, at the pose one negligible step before.
         grad: gradient [6] of the cost in ``xi`` from the same derivative pass as ``jtj``.
+        cost_rendered: the cost of the returned pose from a plain render (the line search's,
+            ``Renderer.window_cost``): the value a ``Scorer`` of ``cs`` at this size computes, bit for bit (``cost``
+            may be the derivative pass's, whose arithmetic differs in the last bits); nan when not rendered.
     """
 
     width: int
@@ -93,6 +96,7 @@ class PolishStats:
     stopped: str
     jtj: np.ndarray
     grad: np.ndarray | None = None
+    cost_rendered: float = math.nan
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in vars(self).items() if k not in ("jtj", "grad")}
@@ -194,15 +198,18 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             motion = step_pixels(xi, f, depth)
             if cost - lc[j] < converged.decrease * cost:  # negligible: the polish ends here, no derivative pass needed
                 pose, cost = trial, float(lc[j])
+                stats.cost_rendered = cost
                 stats.accepted_steps += 1
                 stats.step_px = motion
                 stats.stopped = "converged"
                 break
+        rendered = float(lc[j]) if line_search else math.nan
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
             negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
+            stats.cost_rendered = rendered
             stats.accepted_steps += 1
             stats.step_px = motion
             lam = max(lam * 0.1, LAMBDA_MIN)

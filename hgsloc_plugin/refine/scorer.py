@@ -40,6 +40,13 @@ class Scorer:
         else:
             self._target = self.renderer.upload_image(self.query)
 
+    def remember(self, pose: Pose, cost: float, metric: str) -> None:
+        """Record ``pose``'s ``cost`` under ``metric``, computed elsewhere from a plain render at this scorer's size,
+        renderer, query image and settings (the polish's line search): it is not rendered again. Ignored when
+        ``metric`` is not the scorer's."""
+        if metric == self.metric:
+            self._cache.setdefault(pose.as_array().tobytes(), float(cost))
+
     def __call__(self, poses: list[Pose]) -> np.ndarray:
         """Costs [B] (float64) of the poses; lower is better. A pose already scored at this resolution
         (bit-identical, e.g. a coarse level's node met again by a finer lattice) is not rendered again."""

@@ -241,7 +241,8 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     Everything the rule may need is scored in one batch: the coarse pose and the candidate (their costs are set on
     ``cand``), the one-pixel moves (6 of the 12 for a polished candidate, ``model_moves``; the other 6 in a second
     batch where their rises do not follow the model), and the fusion with the prior (scored before the verdict; used
-    only when the candidate is accepted)."""
+    only when the candidate is accepted). A candidate whose cost the polish's line search rendered at ``cam``'s size
+    is not rendered again (``PolishStats.cost_rendered``)."""
     coarse = plan.coarse_pose
     trust = rule == "trust" and lattice
     moves = _moves(cand.pose, plan, cam, pivot) if trust else []
@@ -252,6 +253,9 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):
         fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
+    last = cand.polish[-1] if cand.polish else None
+    if last is not None and math.isfinite(last.cost_rendered) and (last.width, last.height) == (cam.width, cam.height):
+        scorer.remember(cand.pose, last.cost_rendered, "cs")  # the polish's line search rendered it at this size
     costs = scorer([coarse, cand.pose, *first] + ([fusion[0]] if fusion is not None else []))
     cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
     fused_cost = float(costs[-1]) if fusion is not None else math.nan

@@ -450,6 +450,42 @@ def test_a_negligible_step_ends_the_polish_without_its_derivative_pass():
     assert runs[coarse][1].passes < runs[FINAL][1].passes
     assert runs[FINAL][0].errors_to(target)[0] < 2e-3
 
+def test_a_stage_hands_a_subpixel_model_step_to_the_finer_stage():
+    """A stage followed by a finer one (``STAGE``) takes a Gauss-Newton step that the line search keeps as it is
+    (the multiple 1 wins) and that is under ``handoff_px`` without its derivative pass, and ends ("handoff"); the
+    last stage (``FINAL``) gives it its pass. A step the line search had to lengthen (the curvature overstated:
+    a crawl, not the minimum) is not handed over."""
+    from hgsloc_plugin.refine.polish import FINAL, STAGE
+
+    class Counted(_QuadraticCost):
+        def __init__(self, target, overstate):
+            super().__init__(target, overstate)
+            self.passes = 0
+
+        def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.passes += 1
+            return super().pose_gradient(camera, poses, qstats, background, mask_alpha)
+
+    f, depth = 50.0, 2.0
+    cam = hp.Camera(64, 48, f, f, 32.0, 24.0)
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera([0.0, 0.0, 0.0], [0.8 * depth / f, 0.0, 0.0])  # 0.8 px away
+    assert 0.8 < STAGE.handoff_px and FINAL.handoff_px == 0.0
+    out = {}
+    for overstate in (1.0, 2.0):
+        for conv in (STAGE, FINAL):
+            fake = Counted(target, overstate)
+            pose, st = polish(fake, cam, None, start, depth=depth, iterations=10, allowed=lambda p: True,
+                              converged=conv)
+            assert st.passes == fake.passes and st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
+            out[overstate, conv] = (pose, st)
+    pose, st = out[1.0, STAGE]
+    assert st.stopped == "handoff" and st.passes == 1 and st.accepted_steps == 1
+    assert pose.errors_to(target)[0] < 1e-4 and st.cost_rendered == st.cost
+    assert out[1.0, FINAL][1].stopped != "handoff" and out[1.0, FINAL][1].passes >= 2
+    assert all(st.stopped != "handoff" and st.passes >= 2 for _, st in (out[2.0, STAGE], out[2.0, FINAL]))
+
+
 def test_a_retry_after_a_failed_trial_is_materially_shorter():
     """A gradient that points uphill makes every trial fail. Each retry is damped until its image motion is at most
     RETRY_SHRINK of the failed one's (ten times a tiny damping would repeat the same trial), and the polish

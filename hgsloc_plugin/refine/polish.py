@@ -11,7 +11,8 @@ multiple the line search last needed, or a kept step that lowers the cost by les
 ``max_failures`` rejected trials in a row, or after ``iterations`` passes. A trial outside the trust region is not
 rendered: the damping grows until the step fits (or the polish stops, "trust region"). A step whose line search
 already shows a decrease under ``decrease`` is taken without its derivative pass (nothing would follow it): the
-polish ends there, with the Hessian of the pose before it.
+polish ends there, with the Hessian of the pose before it. A stage followed by a finer one likewise takes a kept
+Gauss-Newton step under ``HANDOFF_PX`` without its pass and hands over (``Convergence.handoff_px``).
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
@@ -48,21 +49,28 @@ RETRY_SHRINK = 0.5  # after a failed trial, the next is at most this fraction of
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
 STAGE_STEP_PX = 0.25
+HANDOFF_PX = 1.0  # ... which hands a kept Gauss-Newton step under this (pixels at its size) to the finer stage
 
 
 @dataclass(frozen=True)
 class Convergence:
     """When a polish stage has converged: a step under ``step_px`` of image motion (pixels at its size, times the
-    multiple the line search last needed), or a kept step lowering the cost by less than ``decrease`` of it."""
+    multiple the line search last needed), or a kept step lowering the cost by less than ``decrease`` of it. A
+    stage followed by a finer one also hands over (``handoff_px``): a Gauss-Newton step the line search keeps as
+    it is (its multiple 1 wins) and under ``handoff_px`` of image motion is taken without its derivative pass, and
+    the finer stage, which starts with one, goes on from there (0: never)."""
 
     step_px: float
     decrease: float
+    handoff_px: float = 0.0
 
 
 FINAL = Convergence(MIN_STEP_PX, MIN_DECREASE)  # the last stage
 # a stage followed by a finer one; its decrease stays the last stage's: a coarser one (1e-2) saved 0.6 passes per
-# query at 2 % / 1 deg but left a wide search's 32 px stage short of the basin on one 30 cm / 10 deg prior
-STAGE = Convergence(STAGE_STEP_PX, MIN_DECREASE)
+# query at 2 % / 1 deg but left a wide search's 32 px stage short of the basin on one 30 cm / 10 deg prior. Its
+# handoff needs the multiple 1 to win: a stage crawling down a long valley in sub-pixel steps that the line search
+# lengthens is not near its minimum (handing those over too left a 30 cm / 10 deg prior unfixed)
+STAGE = Convergence(STAGE_STEP_PX, MIN_DECREASE, HANDOFF_PX)
 
 
 @dataclass
@@ -76,7 +84,8 @@ class PolishStats:
         renders: plain renders of the line search.
         accepted_steps: trials that lowered the cost.
         step_px: image motion of the last accepted step (pixels at the polish size; 0 if none).
-        stopped: "converged" (step below the threshold), "no decrease", "iterations", "trust region".
+        stopped: "converged" (step below the threshold), "handoff" (to the finer stage: ``Convergence.handoff_px``),
+            "no decrease", "iterations", "trust region".
         jtj: Gauss-Newton Hessian [6, 6] of the cost, in ``xi = (w [rad], v [scene units])``, at the returned pose
             or, when the last step was taken on its line-search cost alone, at the pose one negligible step before.
         grad: gradient [6] of the cost in ``xi`` from the same derivative pass as ``jtj``.
@@ -196,12 +205,17 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             reach = m
             xi = m * xi
             motion = step_pixels(xi, f, depth)
-            if cost - lc[j] < converged.decrease * cost:  # negligible: the polish ends here, no derivative pass needed
+            ends = None  # the step is taken on its rendered cost, without a derivative pass, and the stage ends
+            if m == line_search[0] and motion < converged.handoff_px:
+                ends = "handoff"  # the model holds: the finer stage goes on
+            elif cost - lc[j] < converged.decrease * cost:
+                ends = "converged"  # negligible: nothing would follow the pass
+            if ends is not None:
                 pose, cost = trial, float(lc[j])
                 stats.cost_rendered = cost
                 stats.accepted_steps += 1
                 stats.step_px = motion
-                stats.stopped = "converged"
+                stats.stopped = ends
                 break
         rendered = float(lc[j]) if line_search else math.nan
         c2, g2, H2 = evaluate(trial)

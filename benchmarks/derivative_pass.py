@@ -1,14 +1,16 @@
-"""Derivative pass: its time with and without the pixel masks, in units of one plain render, in one run.
+"""Derivative pass: its time in its two blend layouts, in units of one plain render, in one run.
 
-Usage: python benchmarks/derivative_pass.py [--cases snow_sharp snow lego room room_x20] [--repeats 15]
+Usage: python benchmarks/derivative_pass.py [--cases snow_sharp snow lego room room_x20] [--repeats 41]
                                            [--out FILE]
 
 Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set)
 and per scoring size the default refinement uses: one plain render of one pose (ms), one derivative pass
-(``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the pixel masks (``RasterConfig.grad_masks``
-"on", the CPU's default) and without them ("off", the reference), each the median of ``--repeats`` calls made in
-turn on poses about one pixel around the true one; the pass in render-times (over the plain render at the same
-size) and the speed-up; and whether both passes give the same numbers bit for bit.
+(``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the tile-parallel derivative blend
+(``RasterConfig.blend`` "splat", the CPU's default), the per-pixel one with pixel masks (``grad_masks`` "on", the
+CPU's layout before it) and without them ("off", CUDA's default), each the median of ``--repeats`` calls made in
+turn on poses about one pixel around the true one; the passes in render-times (over the plain render at the
+same size); and how far the tile layout's derivatives are from the per-pixel one's (largest difference over
+the largest derivative; colour and alpha must be equal).
 """
 
 from __future__ import annotations
@@ -32,8 +34,11 @@ from hgsloc_plugin.image import resize_image  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
 
-HEADER = ("| case | Gaussians rendered | size | render (ms) | pass, masks (ms) | pass, no masks (ms) | "
-          "pass in render-times: masks / none | speed-up | same numbers |\n|---|---|---|---|---|---|---|---|---|")
+HEADER = ("| case | Gaussians rendered | size | render (ms) | pass (ms): tiles / pixels + masks / pixels | "
+          "pass in render-times: tiles / pixels + masks / pixels | tiles vs pixels + masks | derivatives apart |"
+          "\n|---|---|---|---|---|---|---|---|")
+LAYOUTS = {"tiles": hp.RasterConfig(blend="splat"), "pixels + masks": hp.RasterConfig(blend="pixel", grad_masks="on"),
+           "pixels": hp.RasterConfig(blend="pixel", grad_masks="off")}
 
 
 def renderer_for(scene, bg, raster: hp.RasterConfig, plan_args):
@@ -45,27 +50,26 @@ def renderer_for(scene, bg, raster: hp.RasterConfig, plan_args):
     return (r.covering([plan.coarse_pose]) if hasattr(r, "covering") else r), plan
 
 
-def compared_rows(case: str, repeats: int, rasters: tuple[hp.RasterConfig, hp.RasterConfig], size_row) -> list[str]:
-    """``size_row(case, a, b, camera, image, poses, background)`` per scoring size of ``case``'s first query, ``a``
-    and ``b`` its renderers with the two ``rasters``; ``poses``: ``repeats`` about one pixel around the true one."""
+def compared_rows(case: str, repeats: int, rasters: tuple[hp.RasterConfig, ...], size_row) -> list[str]:
+    """``size_row(case, renderers, camera, image, poses, background)`` per scoring size of ``case``'s first query,
+    ``renderers`` its renderers with the ``rasters``; ``poses``: ``repeats`` about one pixel around the true one."""
     loaded = load(case)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
         return []
     cam, scene, qs, bg = loaded
     _, truth, image, _ = qs[0]
-    a, plan = renderer_for(scene, bg, rasters[0], (cam, truth))
-    b, _ = renderer_for(scene, bg, rasters[1], (cam, truth))
+    renderers = [renderer_for(scene, bg, raster, (cam, truth)) for raster in rasters]
+    plan = renderers[0][1]
     rng = np.random.default_rng(3)
     f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
     poses = [se3_noise(truth, np.degrees(1.0 / f), plan.depth / f, rng) for _ in range(repeats)]
-    return [size_row(case, a, b, c, image, poses, bg)
+    return [size_row(case, [r for r, _ in renderers], c, image, poses, bg)
             for c in dict.fromkeys([plan.cam_coarse, plan.cam_final, plan.cam_polish])]
 
 
 def rows(case: str, repeats: int) -> list[str]:
-    return compared_rows(case, repeats, (hp.RasterConfig(grad_masks="on"), hp.RasterConfig(grad_masks="off")),
-                         size_row)
+    return compared_rows(case, repeats, tuple(LAYOUTS.values()), size_row)
 
 
 def median_ms(calls: dict, poses: list) -> dict:
@@ -80,19 +84,22 @@ def median_ms(calls: dict, poses: list) -> dict:
     return {k: 1000 * float(np.median(v)) for k, v in times.items()}
 
 
-def size_row(case: str, with_masks, without, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:
-    """One Markdown row: the render and both passes at ``cam``'s size, timed in turn on each of ``poses``."""
+def size_row(case: str, renderers, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:
+    """One Markdown row: the render and the pass in each layout (``renderers``, in ``LAYOUTS``' order) at ``cam``'s
+    size, timed in turn on each of ``poses``."""
     img = resize_image(image, cam.width, cam.height)
-    qa, qb = with_masks.upload_window_query(img), without.upload_window_query(img)
-    same = all(np.array_equal(a, b) for a, b in zip(with_masks.pose_gradient(cam, poses[:3], qa, bg),
-                                                    without.pose_gradient(cam, poses[:3], qb, bg)))
-    calls = {"render": lambda p: with_masks.render_full(cam, [p], bg),
-             "masks": lambda p: with_masks.pose_gradient(cam, [p], qa, bg),
-             "none": lambda p: without.pose_gradient(cam, [p], qb, bg)}
-    ms = median_ms(calls, poses)
-    row = (f"| {case} | {with_masks.n:,} | {cam.width}x{cam.height} | {ms['render']:.1f} | {ms['masks']:.1f} | "
-           f"{ms['none']:.1f} | {ms['masks'] / ms['render']:.2f} / {ms['none'] / ms['render']:.2f} | "
-           f"{ms['none'] / ms['masks']:.2f}x | {'yes' if same else 'NO'} |")
+    rs = dict(zip(LAYOUTS, renderers))
+    q = {k: r.upload_window_query(img) for k, r in rs.items()}
+    (rgb, alpha, d), (rgb2, alpha2, d2) = (rs[k].render_derivatives(cam, poses[:3], bg) for k in ("tiles", "pixels"))
+    if not (np.array_equal(rgb, rgb2) and np.array_equal(alpha, alpha2)):
+        raise SystemExit(f"{case} {cam.width}x{cam.height}: the two layouts render different images")
+    apart = float(np.abs(d - d2).max() / np.abs(d2).max())
+    calls = {k: (lambda p, r=r, k=k: r.pose_gradient(cam, [p], q[k], bg)) for k, r in rs.items()}
+    ms = median_ms({"render": lambda p: renderers[0].render_full(cam, [p], bg), **calls}, poses)
+    passes = " / ".join(f"{ms[k]:.1f}" for k in LAYOUTS)
+    times = " / ".join(f"{ms[k] / ms['render']:.2f}" for k in LAYOUTS)
+    row = (f"| {case} | {renderers[0].n:,} | {cam.width}x{cam.height} | {ms['render']:.1f} | {passes} | {times} | "
+           f"{ms['pixels + masks'] / ms['tiles']:.2f}x | {apart:.1e} |")
     print(row, flush=True)
     return row
 
@@ -115,7 +122,7 @@ def table_main(doc: str, script: str, title: str, header: str, rows, repeats: in
 
 
 def main() -> None:
-    table_main(__doc__, "derivative_pass.py", "Derivative pass", HEADER, rows, 15)
+    table_main(__doc__, "derivative_pass.py", "Derivative pass", HEADER, rows, 41)
 
 
 if __name__ == "__main__":

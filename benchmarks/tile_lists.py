@@ -44,8 +44,9 @@ def entries(r, cam: hp.Camera, pose, bg) -> int:
     return int(read_rows(r._workspace(cam, 1).tile_start, 1)[0, -1])
 
 
-def size_row(case: str, box, ellipse, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:
-    """One Markdown row at ``cam``'s size, both renderers timed in turn on each of ``poses``."""
+def size_row(case: str, renderers, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:
+    """One Markdown row at ``cam``'s size, both ``renderers`` (box, ellipse) timed in turn on each of ``poses``."""
+    box, ellipse = renderers
     img = resize_image(image, cam.width, cam.height)
     rs = {"box": box, "ellipse": ellipse}
     q = {k: r.upload_window_query(img) for k, r in rs.items()}

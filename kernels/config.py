@@ -11,13 +11,14 @@ class RasterConfig:
 
     Attributes:
         tile_size: tile edge in pixels.
-        grad_tile_size: tile edge of the lists the pose-derivative pass walks (``pose_grad.blend_grad``: one task
-            per pixel walks its tile's whole depth-ordered list until the pixel is opaque): smaller tiles give
-            shorter lists for the same images and derivatives. The renders keep ``tile_size``.
-        grad_masks: "on": each list entry of the derivative pass carries a mask of the tile's pixels its Gaussian
-            can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so a pixel skips the others on one
-            bit test: the same numbers, less time on the CPU (``benchmarks/derivative_pass.md``); "off"; "auto"
-            (on for the CPU when the tiles allow; off on CUDA, where it is not measured yet).
+        grad_tile_size: tile edge of the lists the pose-derivative pass blends (``blend_grad.py``): smaller tiles
+            give shorter lists for the same images and derivatives. The renders keep ``tile_size``.
+        grad_masks: for the per-pixel derivative blend (``blend`` "pixel"): "on": each list entry carries a mask of
+            the tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so
+            a pixel skips the others on one bit test: the same numbers, less time on the CPU; "off"; "auto" (on
+            for the CPU when the tiles allow; off on CUDA, where it is not measured yet). The tile-parallel
+            derivative blend visits each Gaussian's pixels only and never uses them
+            (``benchmarks/derivative_pass.md``).
         eps2d: dilation added to the 2D covariance diagonal.
         alpha_max: cap on per-Gaussian alpha (gsplat 0.999, Inria 0.99).
         alpha_min: Gaussians with alpha below this are skipped (1/255).
@@ -25,7 +26,8 @@ class RasterConfig:
         near_plane / far_plane: depth culling (camera z).
         radius_mode: "gsplat" (opacity-aware per-axis box) or "inria" (3 sigma of the largest eigenvalue, square).
         blend: "pixel" (one task per pixel, the GPU layout), "splat" (one task per tile, each Gaussian touching
-            only its box: much faster on the CPU) or "auto" (splat on CPU, pixel on CUDA). Same images.
+            only its box: much faster on the CPU) or "auto" (splat on CPU, pixel on CUDA), for the renders and the
+            derivative pass alike. Same images; the derivatives equal to float32 rounding.
         sort: "serial" (each pose's radix and tile sort on one thread: the CPU layout), "parallel" (one tile key
             per Gaussian and tile, sorted by a device radix sort: the GPU layout; ``tile_sort.bin_parallel``) or
             "auto" (serial on CPU, parallel on CUDA). Same tile lists, entry for entry.

@@ -17,16 +17,14 @@ same poses (they read its ``packed`` records, ``ntiles`` and tile lists):
   conic ``Q = cov2^-1``, ``dQ = -Q dcov2 Q``. The SH colour's view direction is held fixed (it changes with the
   camera centre only; measured in ``tests/test_pose_grad.py``: 1.6-2.7 % (relative L2) of the translation
   derivatives on the SH-3 scene, none of the rotation ones; the polish converges regardless).
-- ``blend_grad``: front-to-back compositing per pixel (the arithmetic of ``blend.shade``, so colour and alpha
-  equal the image kernel's) carrying the derivatives: ``dsigma`` from the record derivatives,
-  ``dalpha = -alpha dsigma`` (0 where alpha is capped at ``alpha_max``), ``dC += c (dalpha T + alpha dT)``,
-  ``dT' = dT (1 - alpha) - T dalpha``; output ``drgb = dC + dT background`` [B, H, W, 3 * 6]. The alpha
-  threshold and the early stop are discontinuities; their derivative is taken as 0.
-- ``pixel_masks`` (between the two, where used; tiles of at most 8 x 8 pixels): per tile-list entry, a 64-bit
-  mask of the tile's pixels its Gaussian may reach. A pixel walks its tile's whole list, most of whose Gaussians miss it
-  (snow, 99 px: 426 entries walked per pixel, 45 contributing); with the mask it skips them on one bit test
-  instead of loading and evaluating the record. The mask is a superset of the pixels the exact test keeps, so
-  every number is unchanged (``tests/test_pose_grad.py``).
+- the derivative blend (``blend_grad.py``): front-to-back compositing carrying the derivatives, one task per
+  tile on the CPU (``splat_grad``), one per pixel on CUDA (``blend_grad``); output colour, alpha and
+  ``drgb`` [B, H, W, 3 * 6].
+- ``pixel_masks`` (between the two, for the per-pixel layout where used; tiles of at most 8 x 8 pixels): per
+  tile-list entry, a 64-bit mask of the tile's pixels its Gaussian may reach. A pixel walks its tile's whole list,
+  most of whose Gaussians miss it (snow, 99 px: 426 entries walked per pixel, 45 contributing); with the mask it
+  skips them on one bit test instead of loading and evaluating the record. The mask is a superset of the pixels
+  the exact test keeps, so every number is unchanged (``tests/test_pose_grad.py``).
 Reference twin: ``tests/test_pose_grad.py`` (finite differences of ``tests/reference/render_torch.py`` in float64).
 """
 
@@ -34,22 +32,24 @@ import functools
 
 import taichi as ti
 
-from .blend import tile_range
+from .blend import ellipse_of, tile_pixels, tile_range
+from .blend_grad import DCA, DCB, DCC, DX, DY, NXI, blend_grad_func, splat_grad_func
 from .config import RasterConfig
 from .footprint import PIXEL_MARGIN, SIGMA_MARGIN
 from .grain import item, spread
-from .layout import Cam, Rec
+from .layout import Cam
 from .projection import camera_covariance, clamped_jacobian, view_rt
 
-NXI = 6  # pose parameters
-DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in dpacked (times NXI)
 NDER = 5 * NXI
 MASK_BITS = 64  # pixels of a tile a ``pixel_masks`` entry can describe (tiles of at most 8 x 8)
 
 
-def uses_masks(config: RasterConfig, arch: str) -> bool:
+def uses_masks(config: RasterConfig, arch: str, splat: bool) -> bool:
     """Whether the derivative pass runs ``pixel_masks`` on backend ``arch`` (``RasterConfig.grad_masks``; "auto":
-    on the CPU, when the tiles are small enough for one bit per pixel)."""
+    on the CPU, when the tiles are small enough for one bit per pixel); never for the ``splat`` layout, which
+    visits each Gaussian's pixels only."""
+    if splat:
+        return False
     if config.grad_masks == "auto":
         return arch != "cuda" and config.grad_tile_size ** 2 <= MASK_BITS
     return config.grad_masks == "on"
@@ -155,19 +155,12 @@ def pixel_masks_func(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                x0 = (t % tiles_x) * tile
-                y0 = (t // tiles_x) * tile
-                x1 = ti.min(x0 + tile, width)
-                y1 = ti.min(y0 + tile, height)
+                x0, y0, x1, y1, _ = tile_pixels(t, tiles_x, tile, width, height)
                 start, end = tile_range(b, t, tile_start, isect_base)
                 for k in range(start, end):
                     g = isect[k]
-                    mx = packed[b, g, Rec.X]
-                    my = packed[b, g, Rec.Y]
-                    ca = packed[b, g, Rec.CA]
-                    cb = packed[b, g, Rec.CB]
-                    cc = packed[b, g, Rec.CC]
-                    lim = packed[b, g, Rec.LIM] + SIGMA_MARGIN
+                    mx, my, ca, cb, cc, lim = ellipse_of(packed, b, g)
+                    lim += SIGMA_MARGIN
                     inv_ca = 1.0 / ca
                     m = ti.u64(0)
                     for py in range(y0, y1):
@@ -190,94 +183,15 @@ def pixel_masks_func(config: RasterConfig):
 
 
 @functools.cache
-def blend_grad_func(config: RasterConfig, masked: bool):
-    """``blend_grad`` (a ti.func: one task per pixel): colour [B, H, W, 3], alpha [B, H, W] and the colour's
-    derivatives drgb [B, H, W, 3 * 6] (channel-major). Its tile lists are binned at ``config.grad_tile_size``;
-    ``masked``: ``masks`` [>= M] u64 are ``pixel_masks``'s, else any u64 array (unread)."""
-    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.grad_tile_size
-
-    @ti.func
-    def blend_grad(
-        packed: ti.template(),
-        dpacked: ti.template(),
-        tile_start: ti.template(),
-        isect: ti.template(),
-        isect_base: ti.template(),
-        masks: ti.template(),
-        background: ti.template(),
-        tiles_x,
-        num_poses,
-        out_rgb: ti.template(),
-        out_alpha: ti.template(),
-        out_d: ti.template(),
-    ):
-        H = out_rgb.shape[1]
-        W = out_rgb.shape[2]
-        for b, py, px in ti.ndrange(num_poses, H, W):
-            start, end = tile_range(b, (py // tile) * tiles_x + px // tile, tile_start, isect_base)
-            fx = ti.cast(px, ti.f32) + 0.5
-            fy = ti.cast(py, ti.f32) + 0.5
-            T = 1.0
-            C = ti.Vector([0.0, 0.0, 0.0])
-            dT = ti.Vector([0.0] * NXI)
-            dC = ti.Matrix.zero(ti.f32, 3, NXI)
-            bit = ti.cast((py % tile) * tile + px % tile, ti.u64)
-            for k in range(start, end):
-                if ti.static(masked):
-                    if (masks[k] >> bit) & ti.u64(1) == ti.u64(0):
-                        continue  # the Gaussian cannot reach this pixel (pixel_masks)
-                g = isect[k]
-                dx = packed[b, g, Rec.X] - fx
-                dy = packed[b, g, Rec.Y] - fy
-                ca = packed[b, g, Rec.CA]
-                cb = packed[b, g, Rec.CB]
-                cc = packed[b, g, Rec.CC]
-                sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                if sigma > packed[b, g, Rec.LIM] + SIGMA_MARGIN:
-                    continue  # alpha < alpha_min for certain: skip the exponential (the exact test follows)
-                raw = packed[b, g, Rec.OPACITY] * ti.exp(-sigma)
-                alpha = ti.min(alpha_max, raw)
-                if sigma < 0.0 or alpha < alpha_min:
-                    continue
-                next_T = T * (1.0 - alpha)
-                if next_T <= t_eps:
-                    break
-                vis = alpha * T
-                col = ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
-                C += vis * col
-                # d alpha = -alpha d sigma (0 where capped); d sigma through the record's five quantities
-                na = -alpha if raw < alpha_max else 0.0
-                s_x = na * (ca * dx + cb * dy)
-                s_y = na * (cc * dy + cb * dx)
-                s_a = na * 0.5 * dx * dx
-                s_b = na * dx * dy
-                s_c = na * 0.5 * dy * dy
-                for j in ti.static(range(NXI)):
-                    dal = (s_x * dpacked[b, g, DX * NXI + j] + s_y * dpacked[b, g, DY * NXI + j]
-                           + s_a * dpacked[b, g, DCA * NXI + j] + s_b * dpacked[b, g, DCB * NXI + j]
-                           + s_c * dpacked[b, g, DCC * NXI + j])
-                    dvis = dal * T + alpha * dT[j]
-                    for c in ti.static(range(3)):
-                        dC[c, j] += dvis * col[c]
-                    dT[j] = dT[j] * (1.0 - alpha) - T * dal
-                T = next_T
-            for c in ti.static(range(3)):
-                out_rgb[b, py, px, c] = C[c] + T * background[c]
-                for j in ti.static(range(NXI)):
-                    out_d[b, py, px, c * NXI + j] = dC[c, j] + dT[j] * background[c]
-            out_alpha[b, py, px] = 1.0 - T
-
-    return blend_grad
-
-
-@functools.cache
-def derivative_images_kernel(config: RasterConfig, masked: bool):
+def derivative_images_kernel(config: RasterConfig, splat: bool, masked: bool):
     """The derivative pass after the projection and tile sort of the same poses, in one launch: the records'
     derivatives (``projection_grad``, each pose with its camera record from the projection's ``cams``), with
-    ``masked`` the pixel masks (``pixel_masks``), then the colour, alpha and colour derivatives (``blend_grad``).
-    Arguments: those of the three, in that order, each once."""
+    ``masked`` the pixel masks (``pixel_masks``), then the colour, alpha and colour derivatives (``splat_grad``
+    with ``splat``, else ``blend_grad``). Arguments: those of the three, in that order, each once."""
+    if splat and masked:
+        raise ValueError("the pixel masks serve the per-pixel derivative blend only")
     records, masks_of = projection_grad_func(config), pixel_masks_func(config)
-    blend = blend_grad_func(config, masked)
+    blend = splat_grad_func(config) if splat else blend_grad_func(config, masked)
     f32, i32 = ti.f32, ti.i32
 
     @ti.kernel
@@ -306,7 +220,7 @@ def derivative_images_kernel(config: RasterConfig, masked: bool):
         records(means, cov3d, viewmats, cams, num_poses, ntiles, dpacked)
         if ti.static(masked):
             masks_of(packed, tile_start, isect, isect_base, tiles_x, tiles_y, num_poses, width, height, masks)
-        blend(packed, dpacked, tile_start, isect, isect_base, masks, background, tiles_x, num_poses, out_rgb,
+        blend(packed, dpacked, tile_start, isect, isect_base, masks, background, tiles_x, tiles_y, num_poses, out_rgb,
               out_alpha, out_d)
 
     return derivative_images

@@ -572,7 +572,8 @@ def test_pixel_masks_hold_every_pixel_a_gaussian_reaches(name):
     alpha reaches alpha_min (float64 reference from the records) and little more: the derivative blend skips
     the others on one bit test, so a missing pixel would change its numbers and a full mask would save nothing."""
     scene, cam, T = cost_case(name)
-    masks, exact = _masks_and_reference(get_renderer(scene, hp.RasterConfig(grad_masks="on")), cam, T)
+    r = get_renderer(scene, hp.RasterConfig(blend="pixel", grad_masks="on"))
+    masks, exact = _masks_and_reference(r, cam, T)
     assert len(masks) > 1000
     assert not np.any(exact & ~masks), "a mask misses a pixel its Gaussian reaches"
     got, need = _bits(masks), _bits(exact)
@@ -582,12 +583,12 @@ def test_pixel_masks_hold_every_pixel_a_gaussian_reaches(name):
 
 @pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
 def test_pixel_masks_change_no_number(name):
-    """The derivative pass with pixel masks (RasterConfig.grad_masks) gives the images, derivatives, costs,
-    gradients and JtJ of the pass without them, bit for bit."""
+    """The per-pixel derivative pass with pixel masks (RasterConfig.grad_masks) gives the images, derivatives,
+    costs, gradients and JtJ of the pass without them, bit for bit."""
     scene, cam, T = cost_case(name)
     img = degrade(hp.render(scene, cam, moved(T, 2, 0.01)), np.random.default_rng(1))
     poses = [T, moved(T, 0, 0.004), moved(T, 4, -0.003)]
-    got, ref = (get_renderer(scene, hp.RasterConfig(grad_masks=m)) for m in ("on", "off"))
+    got, ref = (get_renderer(scene, hp.RasterConfig(blend="pixel", grad_masks=m)) for m in ("on", "off"))
     q = got.upload_window_query(img)
     for a, b in zip(got.render_derivatives(cam, poses), ref.render_derivatives(cam, poses)):
         np.testing.assert_array_equal(a, b)
@@ -596,15 +597,44 @@ def test_pixel_masks_change_no_number(name):
 
 
 def test_grad_masks_setting():
-    """RasterConfig.grad_masks: "auto" uses the masks on the CPU only and where the tiles fit 64 bits; a bad value
-    or "on" with tiles too large is refused."""
+    """RasterConfig.grad_masks: "auto" uses the masks for the per-pixel derivative blend on the CPU only and where
+    the tiles fit 64 bits, never for the tile-parallel one (the CPU's default); a bad value or "on" with tiles too
+    large is refused."""
     from hgsloc_plugin.kernels.pose_grad import uses_masks
 
-    assert uses_masks(hp.RasterConfig(), "cpu") and not uses_masks(hp.RasterConfig(), "cuda")
-    assert not uses_masks(hp.RasterConfig(grad_tile_size=16), "cpu")
-    assert uses_masks(hp.RasterConfig(grad_masks="on"), "cuda")
-    assert not uses_masks(hp.RasterConfig(grad_masks="off"), "cpu")
+    assert uses_masks(hp.RasterConfig(), "cpu", False) and not uses_masks(hp.RasterConfig(), "cuda", False)
+    assert not uses_masks(hp.RasterConfig(grad_tile_size=16), "cpu", False)
+    assert uses_masks(hp.RasterConfig(grad_masks="on"), "cuda", False)
+    assert not uses_masks(hp.RasterConfig(grad_masks="off"), "cpu", False)
+    assert not uses_masks(hp.RasterConfig(grad_masks="on"), "cpu", True)
+    r = get_renderer(make_room_scene())  # this process runs on the CPU
+    assert r.blend_mode == "splat" and not r.grad_masks
     with pytest.raises(ValueError, match="grad_masks"):
         hp.RasterConfig(grad_masks="yes")
     with pytest.raises(ValueError, match="grad_tile_size <= 8"):
         hp.RasterConfig(grad_masks="on", grad_tile_size=16)
+
+
+@pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
+def test_tile_and_pixel_derivative_blends_agree(name):
+    """The CPU's tile-parallel derivative blend (kernels.blend_grad.splat_grad) and the per-pixel one (blend_grad,
+    with and without pixel masks) give the same colour and alpha bit for bit, and derivatives, costs, gradients
+    and JtJ equal to float32 rounding (the compiler fuses their multiply-adds differently): a Gaussian missed or
+    blended out of order at one pixel would move them by far more. Partial tiles on both axes."""
+    scene, cam, T = cost_case(name)
+    cam = hp.Camera.from_fov(cam.width - 3, cam.height - 5, 55.0)
+    img = degrade(hp.render(scene, cam, moved(T, 3, 0.01)), np.random.default_rng(2))
+    poses = [T, moved(T, 2, 0.004), moved(T, 3, -0.003)]
+    tiled = get_renderer(scene, hp.RasterConfig(blend="splat"))
+    rgb, alpha, d = tiled.render_derivatives(cam, poses)
+    system = tiled.pose_gradient(cam, poses, tiled.upload_window_query(img))
+    for masks in ("on", "off"):
+        pixel = get_renderer(scene, hp.RasterConfig(blend="pixel", grad_masks=masks))
+        assert pixel.grad_masks == (masks == "on")
+        rgb2, alpha2, d2 = pixel.render_derivatives(cam, poses)
+        np.testing.assert_array_equal(rgb, rgb2)
+        np.testing.assert_array_equal(alpha, alpha2)
+        scale = np.abs(d2).max()
+        assert scale > 0 and np.abs(d - d2).max() <= 1e-5 * scale, np.abs(d - d2).max() / scale
+        for a, b in zip(system, pixel.pose_gradient(cam, poses, pixel.upload_window_query(img))):
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * np.abs(b).max())

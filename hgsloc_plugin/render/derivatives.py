@@ -40,11 +40,11 @@ def derivative_images(r, cams: list[Camera], part: list[Pose], background) -> De
     g = derivative_workspace(r, camera, min(r.grad_chunk, len(part)))
     rec, drec, gs = r.pool.records, r.pool.derivative_records, r.gaussians
     n = len(part)
-    # one task per pixel on every backend (a tile-parallel twin was slower on the CPU: benchmarks/defaults.md),
-    # each skipping the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
+    # the blend layout of the renders (RasterConfig.blend): one task per tile on the CPU, per pixel on CUDA, where
+    # each pixel may skip the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
     tx, ty = ws.tiles
     masks = r.pool.pixel_masks() if r.grad_masks else r.pool.placeholder(ti.u64)
-    derivative_images_kernel(r.config, r.grad_masks)(
+    derivative_images_kernel(r.config, r.blend_mode == "splat", r.grad_masks)(
         gs.means, gs.cov3d, ws.viewmats, ws.cams, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
         rec.packed, ws.tile_start, r.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb, g.alpha,
         g.drgb)

@@ -61,7 +61,7 @@ class Renderer:
         self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
         self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
         self._reduce = reduce_kernel()
-        self.grad_masks = uses_masks(self.config, current_arch())  # the derivative pass's pixel masks
+        self.grad_masks = uses_masks(self.config, current_arch(), mode == "splat")  # the derivative pass's masks
         self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
         self._root_index: np.ndarray | None = None  # resident indices there (increasing)
 

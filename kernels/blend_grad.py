@@ -1,0 +1,200 @@
+"""Derivative blending: the colour, alpha and pose derivatives of each pixel, in two layouts with one arithmetic.
+
+Front-to-back compositing (the arithmetic of ``blend.shade``, so colour and alpha equal the image kernel's)
+carrying the derivatives in the pose increment ``xi`` [6] (``pose_grad``): per contributing Gaussian
+``dsigma`` from its record's derivatives, ``dalpha = -alpha dsigma`` (0 where alpha is capped at ``alpha_max``),
+``dC += c (dalpha T + alpha dT)``, ``dT' = dT (1 - alpha) - T dalpha`` (:func:`chain_step`); output ``drgb = dC +
+dT background`` [B, H, W, 3 * 6]. The alpha threshold and the early stop are discontinuities; their derivative
+is taken as 0.
+
+- ``blend_grad`` (the GPU layout): one task per pixel walks its tile's depth-ordered list, optionally skipping
+  the entries whose pixel mask (``pose_grad.pixel_masks``) leaves it out.
+- ``splat_grad`` (the CPU layout, ``RasterConfig.blend`` "splat"): one task per tile, each Gaussian of its list
+  loading its record and derivatives once and visiting only the pixels of its alpha ellipse, as
+  the image's splat blend does (``blend.splat_walk``).
+Reference twin: ``tests/test_pose_grad.py`` (finite differences of ``tests/reference/render_torch.py`` in
+float64; the two layouts against each other).
+"""
+
+import functools
+
+import taichi as ti
+
+from .blend import splat_walk, tile_range
+from .config import RasterConfig
+from .footprint import SIGMA_MARGIN
+from .grain import item, spread
+from .layout import Rec
+
+NXI = 6  # pose parameters
+DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in the records' derivatives (times NXI)
+NACC = 4 + 4 * NXI  # a splat_grad pixel's accumulators: T, colour [3], dT [6], dC [3, 6] (channel-major)
+ACC_DT, ACC_DC = 4, 4 + NXI  # their fields
+
+
+@ti.func
+def chain_step(alpha, capped, T, dx, dy, ca, cb, cc, col, D, dT, dC):
+    """One contributing Gaussian's step of the derivatives' front-to-back compositing at a pixel.
+
+    alpha: its alpha there (``capped``: at ``alpha_max``, whose derivative is 0), T: the transmittance before it,
+    dx, dy: its 2D mean minus the pixel centre, (ca, cb, cc): its conic, col [3]: its colour, D [5, 6]: its record's
+    derivatives (rows DX, DY, DCA, DCB, DCC of ``dpacked``); dT [6], dC [3, 6]: the pixel's derivatives of
+    transmittance and colour before it. Returns them after it."""
+    na = 0.0 if capped else -alpha  # d alpha = -alpha d sigma; d sigma through the record's five quantities
+    s_x = na * (ca * dx + cb * dy)
+    s_y = na * (cc * dy + cb * dx)
+    s_a = na * 0.5 * dx * dx
+    s_b = na * dx * dy
+    s_c = na * 0.5 * dy * dy
+    for j in ti.static(range(NXI)):
+        dal = s_x * D[DX, j] + s_y * D[DY, j] + s_a * D[DCA, j] + s_b * D[DCB, j] + s_c * D[DCC, j]
+        dvis = dal * T + alpha * dT[j]
+        for c in ti.static(range(3)):
+            dC[c, j] += dvis * col[c]
+        dT[j] = dT[j] * (1.0 - alpha) - T * dal
+    return dT, dC
+
+
+@ti.func
+def record_derivatives(dpacked: ti.template(), b, g):
+    """D [5, 6]: the derivatives of Gaussian ``g``'s record in pose ``b`` (``dpacked``'s, quantity-major)."""
+    return ti.Matrix([[dpacked[b, g, q * NXI + j] for j in ti.static(range(NXI))] for q in ti.static(range(5))])
+
+
+@functools.cache
+def blend_grad_func(config: RasterConfig, masked: bool):
+    """``blend_grad`` (a ti.func: one task per pixel, the GPU layout): colour [B, H, W, 3], alpha [B, H, W] and the
+    colour's derivatives drgb [B, H, W, 3 * 6] (channel-major). Its tile lists are binned at
+    ``config.grad_tile_size``; ``masked``: ``masks`` [>= M] u64 are ``pixel_masks``'s, else any u64 array (unread)."""
+    alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.grad_tile_size
+
+    @ti.func
+    def blend_grad(
+        packed: ti.template(),
+        dpacked: ti.template(),
+        tile_start: ti.template(),
+        isect: ti.template(),
+        isect_base: ti.template(),
+        masks: ti.template(),
+        background: ti.template(),
+        tiles_x,
+        tiles_y,
+        num_poses,
+        out_rgb: ti.template(),
+        out_alpha: ti.template(),
+        out_d: ti.template(),
+    ):
+        H = out_rgb.shape[1]
+        W = out_rgb.shape[2]
+        for b, py, px in ti.ndrange(num_poses, H, W):
+            start, end = tile_range(b, (py // tile) * tiles_x + px // tile, tile_start, isect_base)
+            fx = ti.cast(px, ti.f32) + 0.5
+            fy = ti.cast(py, ti.f32) + 0.5
+            T = 1.0
+            C = ti.Vector([0.0, 0.0, 0.0])
+            dT = ti.Vector([0.0] * NXI)
+            dC = ti.Matrix.zero(ti.f32, 3, NXI)
+            bit = ti.cast((py % tile) * tile + px % tile, ti.u64)
+            for k in range(start, end):
+                if ti.static(masked):
+                    if (masks[k] >> bit) & ti.u64(1) == ti.u64(0):
+                        continue  # the Gaussian cannot reach this pixel (pixel_masks)
+                g = isect[k]
+                dx = packed[b, g, Rec.X] - fx
+                dy = packed[b, g, Rec.Y] - fy
+                ca = packed[b, g, Rec.CA]
+                cb = packed[b, g, Rec.CB]
+                cc = packed[b, g, Rec.CC]
+                sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                if sigma > packed[b, g, Rec.LIM] + SIGMA_MARGIN:
+                    continue  # alpha < alpha_min for certain: skip the exponential (the exact test follows)
+                raw = packed[b, g, Rec.OPACITY] * ti.exp(-sigma)
+                alpha = ti.min(alpha_max, raw)
+                if sigma < 0.0 or alpha < alpha_min:
+                    continue
+                next_T = T * (1.0 - alpha)
+                if next_T <= t_eps:
+                    break
+                col = ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
+                C += alpha * T * col
+                dT, dC = chain_step(alpha, raw >= alpha_max, T, dx, dy, ca, cb, cc, col,
+                                    record_derivatives(dpacked, b, g), dT, dC)
+                T = next_T
+            for c in ti.static(range(3)):
+                out_rgb[b, py, px, c] = C[c] + T * background[c]
+                for j in ti.static(range(NXI)):
+                    out_d[b, py, px, c * NXI + j] = dC[c, j] + dT[j] * background[c]
+            out_alpha[b, py, px] = 1.0 - T
+
+    return blend_grad
+
+
+@ti.func
+def _colour_and_derivatives(packed: ti.template(), dpacked: ti.template(), b, g):
+    """The derivative blend's per-Gaussian terms: colour [3] and its record's derivatives D [5, 6]."""
+    return ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]]), \
+        record_derivatives(dpacked, b, g)
+
+
+@ti.func
+def _add_colour_and_derivatives(acc: ti.template(), p, col, D, alpha, capped, T, dx, dy, ca, cb, cc):
+    """The derivative blend's pixel terms (accumulators ``NACC``: T, colour [3], dT [6], dC [3, 6]): the colour as
+    the image's, the derivatives by :func:`chain_step`."""
+    for c in ti.static(range(3)):
+        acc[p, 1 + c] += alpha * T * col[c]
+    dT = ti.Vector([acc[p, ACC_DT + j] for j in ti.static(range(NXI))])
+    dC = ti.Matrix([[acc[p, ACC_DC + c * NXI + j] for j in ti.static(range(NXI))] for c in ti.static(range(3))])
+    dT, dC = chain_step(alpha, capped, T, dx, dy, ca, cb, cc, col, D, dT, dC)
+    for j in ti.static(range(NXI)):
+        acc[p, ACC_DT + j] = dT[j]
+        for c in ti.static(range(3)):
+            acc[p, ACC_DC + c * NXI + j] = dC[c, j]
+
+
+@functools.cache
+def splat_grad_func(config: RasterConfig):
+    """``splat_grad`` (a ti.func: one task per pose and tile, the CPU layout): the outputs of ``blend_grad``, with
+    the same arguments (``masks`` unread). ``blend.splat_walk`` with the derivative terms: each Gaussian of the
+    tile's list (depth order) loads its record and derivatives once and visits only the pixels of its alpha ellipse;
+    the pixels' accumulators (``NACC``) live in a local array. Per pixel the Gaussians and their order are
+    ``blend_grad``'s, so colour and alpha equal it bit for bit and the derivatives to float32 rounding (the compiler
+    may fuse their multiply-adds differently)."""
+    tile = config.grad_tile_size
+    walk = splat_walk(config, tile, NACC, _colour_and_derivatives, _add_colour_and_derivatives)
+
+    @ti.func
+    def splat_grad(
+        packed: ti.template(),
+        dpacked: ti.template(),
+        tile_start: ti.template(),
+        isect: ti.template(),
+        isect_base: ti.template(),
+        masks: ti.template(),
+        background: ti.template(),
+        tiles_x,
+        tiles_y,
+        num_poses,
+        out_rgb: ti.template(),
+        out_alpha: ti.template(),
+        out_d: ti.template(),
+    ):
+        H = out_rgb.shape[1]
+        W = out_rgb.shape[2]
+        stride = ti.static(spread())  # one task per tile on the CPU (grain.py)
+        nt = tiles_x * tiles_y
+        for task in range(num_poses * nt * stride):
+            is_item, b, t = item(task, stride, nt)
+            if is_item:
+                acc, x0, y0 = walk(b, t, tiles_x, W, H, packed, dpacked, tile_start, isect, isect_base)
+                for py in range(y0, ti.min(y0 + tile, H)):
+                    for px in range(x0, ti.min(x0 + tile, W)):
+                        p = (py - y0) * tile + (px - x0)
+                        T = ti.abs(acc[p, 0])
+                        for c in ti.static(range(3)):
+                            out_rgb[b, py, px, c] = acc[p, 1 + c] + T * background[c]
+                            for j in ti.static(range(NXI)):
+                                dtj = acc[p, ACC_DT + j]
+                                out_d[b, py, px, c * NXI + j] = acc[p, ACC_DC + c * NXI + j] + dtj * background[c]
+                        out_alpha[b, py, px] = 1.0 - T
+
+    return splat_grad

@@ -33,6 +33,7 @@ from ..pose import Pose, rotation_angle_deg
 if TYPE_CHECKING:
     from ..camera import Camera
     from .plan import Plan
+    from .polish import PolishStats
     from .routes import Candidate
     from .scorer import Scorer
 
@@ -253,8 +254,8 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):
         fusion = fuse_with_prior(cand.pose, uncertainty[0], coarse, plan.prior_error, plan.prior_error_deg)
-    last = cand.polish[-1] if cand.polish else None
-    if last is not None and math.isfinite(last.cost_rendered) and (last.width, last.height) == (cam.width, cam.height):
+    last = last_stage_at(cand, cam)
+    if last is not None and math.isfinite(last.cost_rendered):
         scorer.remember(cand.pose, last.cost_rendered, "cs")  # the polish's line search rendered it at this size
     costs = scorer([coarse, cand.pose, *first] + ([fusion[0]] if fusion is not None else []))
     cand.cost_initial, cand.cost = float(costs[0]), float(costs[1])
@@ -301,13 +302,19 @@ def _moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
     return [space.pose(k) for k in space.neighbours((0,) * 6)]
 
 
+def last_stage_at(cand: Candidate, cam: Camera | None) -> PolishStats | None:
+    """``cand``'s last polish stage if it ran at ``cam``'s size (the rule's), else None."""
+    if not cand.polish or cam is None:
+        return None
+    last = cand.polish[-1]
+    return last if (last.width, last.height) == (cam.width, cam.height) else None
+
+
 def predicted_rises(cand: Candidate, moves: list[Pose], cam: Camera) -> np.ndarray | None:
     """The rises [12] of the 12 one-pixel ``moves`` around ``cand`` that its last polish stage's Gauss-Newton model
     predicts (``g.xi + xi' JtJ xi / 2``); None without a finite model at ``cam``'s size."""
-    if len(moves) != 12 or not cand.polish:
-        return None
-    last = cand.polish[-1]
-    if (last.width, last.height) != (cam.width, cam.height) or last.grad is None:
+    last = last_stage_at(cand, cam) if len(moves) == 12 else None
+    if last is None or last.grad is None:
         return None
     H, g = np.asarray(last.jtj, np.float64), np.asarray(last.grad, np.float64)
     if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):

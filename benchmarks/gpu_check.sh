@@ -11,7 +11,8 @@
 #   5. the tile lists binned by ellipse and by box (RasterConfig.tile_test's CUDA default);
 #   6. the densified room's lockstep batches with their working sets' union up to 2x, and none
 #      (backend.DEFAULT_UNION_LIMIT's CUDA default);
-#   7. the derivative pass with and without pixel masks (RasterConfig.grad_masks' CUDA default);
+#   7. the derivative pass in its layouts: tiles, pixels with and without pixel masks (RasterConfig.blend's and
+#      grad_masks' CUDA defaults);
 #   8. the map-scale table.
 # A step starts only while the budget (GPU_CHECK_BUDGET_S seconds, default 540) lasts, and is stopped at its end;
 # OUT_DIR/steps.log lists each step's exit status and seconds ("skipped" past the budget).

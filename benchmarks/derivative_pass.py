@@ -4,13 +4,13 @@ Usage: python benchmarks/derivative_pass.py [--cases snow_sharp snow lego room r
                                            [--out FILE]
 
 Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set)
-and per scoring size the default refinement uses: one plain render of one pose (ms), one derivative pass
-(``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the tile-parallel derivative blend
-(``RasterConfig.blend`` "splat", the CPU's default), the per-pixel one with pixel masks (``grad_masks`` "on", the
-CPU's layout before it) and without them ("off", CUDA's default), each the median of ``--repeats`` calls made in
-turn on poses about one pixel around the true one; the passes in render-times (over the plain render at the
-same size); and how far the tile layout's derivatives are from the per-pixel one's (largest difference over
-the largest derivative; colour and alpha must be equal).
+and per scoring size the default refinement uses: one plain render of one pose (ms; in the backend's default
+layout), one derivative pass (``Renderer.pose_gradient``: the cs cost, gradient and JtJ) with the tile-parallel
+derivative blend (``RasterConfig.blend`` "splat", the CPU's default), the per-pixel one with pixel masks
+(``grad_masks`` "on", the CPU's layout before it) and without them ("off", CUDA's default), each the median of
+``--repeats`` calls made in turn on poses about one pixel around the true one; the passes in render-times (over
+the plain render at the same size); and how far the tile layout's derivatives are from the per-pixel one's
+(largest difference over the largest derivative; colour and alpha must be equal).
 """
 
 from __future__ import annotations
@@ -95,7 +95,8 @@ def size_row(case: str, renderers, cam: hp.Camera, image: np.ndarray, poses: lis
         raise SystemExit(f"{case} {cam.width}x{cam.height}: the two layouts render different images")
     apart = float(np.abs(d - d2).max() / np.abs(d2).max())
     calls = {k: (lambda p, r=r, k=k: r.pose_gradient(cam, [p], q[k], bg)) for k, r in rs.items()}
-    ms = median_ms({"render": lambda p: renderers[0].render_full(cam, [p], bg), **calls}, poses)
+    unit = rs["tiles" if hp.init() == "cpu" else "pixels"]  # the render in the backend's default layout
+    ms = median_ms({"render": lambda p: unit.render_full(cam, [p], bg), **calls}, poses)
     passes = " / ".join(f"{ms[k]:.1f}" for k in LAYOUTS)
     times = " / ".join(f"{ms[k] / ms['render']:.2f}" for k in LAYOUTS)
     row = (f"| {case} | {renderers[0].n:,} | {cam.width}x{cam.height} | {ms['render']:.1f} | {passes} | {times} | "

@@ -1,13 +1,14 @@
 """Start-up benchmark: what a new process pays before its queries run at full speed.
 
-Usage: python benchmarks/startup.py [--runs 2] [--out FILE]
+Usage: python benchmarks/startup.py [--runs 2] [--cold] [--before DIR] [--out FILE]
 
 Each row is a fresh Python process (as a CLI call or a new script is) that imports the package, starts Taichi,
 renders one image of the demo room and refines one query (320x240, 3 cm / 1 deg prior) twice: the first
 refinement loads every kernel it needs (Taichi translates each kernel's Python source in each process and then
 finds the compiled kernel in its offline cache), the second runs on loaded kernels. "loading" is their
 difference. One untimed process first fills the offline cache, so every timed row sees a warm disk cache, as
-every run after a user's first does.
+every run after a user's first does; with ``--cold`` each row starts from an empty offline cache instead (a
+user's first run: loading is then mostly compiling).
 Settings: ``memo off`` (``HGSLOC_TAICHI_MEMO=0``: Taichi's source-position formatting not memoised, the state
 before ``hgsloc_plugin/kernel_load.py``) and ``default``; both run the same kernels. ``--before DIR`` adds a
 setting that imports the package from another checkout (e.g. ``git worktree add DIR <commit>``, with
@@ -59,8 +60,12 @@ def child() -> dict:
             "total": time.perf_counter() - t0}
 
 
-def run(setting: str) -> dict:
+def run(setting: str, cold: bool = False) -> dict:
     env = dict(os.environ, **SETTINGS[setting])
+    if cold:
+        import tempfile
+
+        env["HGSLOC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hgsloc_cold_cache_")
     if "PYTHONPATH" in SETTINGS[setting]:
         env["PYTHONPATH"] = SETTINGS[setting]["PYTHONPATH"] + os.pathsep + os.environ.get("PYTHONPATH", "")
     p = subprocess.run([sys.executable, __file__, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
@@ -74,6 +79,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2, help="processes per setting")
     ap.add_argument("--out", type=Path, help="also write the Markdown table here")
     ap.add_argument("--before", type=Path, help="another checkout to measure as the reference (see above)")
+    ap.add_argument("--cold", action="store_true", help="each process starts from an empty offline cache")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -83,15 +89,17 @@ def main() -> None:
         if not (args.before / "hgsloc_plugin" / "kernels").exists():
             raise SystemExit(f"{args.before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
         SETTINGS[f"before ({args.before.name})"] = {"PYTHONPATH": str(args.before.resolve())}
-    run("default")  # untimed: fills the offline cache
+    if not args.cold:
+        run("default")  # untimed: fills the offline cache
     rows = []
     for k in range(args.runs):
         for setting in SETTINGS:
-            r = run(setting)
+            r = run(setting, args.cold)
             rows.append((setting, k + 1, r))
             print(f"{setting} run {k + 1}: {r}", file=sys.stderr)
     lines = ["# Start-up (`benchmarks/startup.py`)", "",
-             "A fresh process each row (offline cache warm): seconds to import the package, start Taichi, render the",
+             f"A fresh process each row (offline cache {'empty' if args.cold else 'warm'}): seconds to import the "
+             "package, start Taichi, render the",
              "first image (demo room, 320x240) and refine one query twice; loading = first refine - the same again.",
              "", "| setting | run | import | init | first render | first refine | same query again | loading | "
              "process total | same pose |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -115,9 +123,10 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from real_photos import write_keeping_notes
 
-        atomic_write_bytes(args.out, text.encode())
+        write_keeping_notes(args.out, text.rstrip("\n").split("\n"))
 
 
 if __name__ == "__main__":

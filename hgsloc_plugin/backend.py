@@ -5,7 +5,9 @@
 caps the CPU backend's threads (e.g. several processes sharing one machine's cores). Kernels are cached on disk
 by Taichi's offline cache (``HGSLOC_CACHE_DIR``, default ``~/.cache/hgsloc_plugin/taichi``; one set per CPU
 thread count) so a second process does not recompile them, and Taichi's front end, which still runs in every
-process, is memoised where it repeats itself (``kernel_load.py``).
+process, is memoised where it repeats itself (``kernel_load.py``). On the CPU, Taichi's control-flow-graph
+optimisation is off: it took most of the compile time (a user's first query 113 s -> 36 s,
+``benchmarks/startup_cold.md``).
 """
 
 from __future__ import annotations
@@ -109,7 +111,9 @@ def _start(requested: str, debug: bool, cpu_threads: int | None) -> str:
         if requested == "cuda":
             raise RuntimeError("CUDA backend requested but Taichi fell back to another arch")
         ti.reset()
-    ti.init(arch=ti.cpu, **kwargs)
+    # without Taichi's control-flow-graph pass (store forwarding, dead stores; LLVM does both for the CPU): kernels
+    # compile 3-5x faster and run as fast (benchmarks/startup_cold.md)
+    ti.init(arch=ti.cpu, cfg_optimization=False, **kwargs)
     logger.info("Taichi started on CPU")
     return "cpu"
 

@@ -1,5 +1,6 @@
 """Kernel loading (``hgsloc_plugin/kernel_load.py``): the memoised source positions change no compile error and
-are reused across the repeated visits of unrolled loops.
+are reused across the repeated visits of unrolled loops; the CPU backend compiles without Taichi's
+control-flow-graph pass (``backend.py``).
 
 No ``from __future__ import annotations`` here: Taichi reads the kernel annotations as objects."""
 
@@ -8,6 +9,9 @@ import os
 import subprocess
 import sys
 import textwrap
+
+import pytest
+import taichi as ti
 
 import hgsloc_plugin as hp
 
@@ -86,3 +90,11 @@ def test_unrolled_visits_reuse_the_formatted_positions():
     added = len(memo.cache) - before
     assert len(calls) > 24 * 5  # every unrolled iteration visits the body's nodes again
     assert 0 < added < len(calls) / 10  # ... but each distinct node is formatted once
+
+
+def test_cpu_backend_starts_without_the_cfg_pass():
+    """The pass took most of the compile time (``benchmarks/startup_cold.md``); CUDA keeps Taichi's default."""
+    arch = hp.init()
+    if arch != "cpu":
+        pytest.skip("the setting is the CPU backend's")
+    assert ti.lang.impl.current_cfg().cfg_optimization is False

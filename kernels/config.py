@@ -13,8 +13,8 @@ class RasterConfig:
         tile_size: tile edge in pixels.
         grad_tile_size: tile edge of the lists the pose-derivative pass blends (``blend_grad.py``): smaller tiles
             give shorter lists for the same images and derivatives. The renders keep ``tile_size``. The tile
-            layout keeps a tile's accumulators in a local array: 8 px compiles in about a minute, 16 px in more
-            than four.
+            layout keeps a tile's accumulators in a local array: on one CPU thread 8 px compiles in about 7 s,
+            16 px in about a minute.
         grad_masks: for the per-pixel derivative blend (``blend`` "pixel"): "on": each list entry carries a mask of
             the tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so
             a pixel skips the others on one bit test: the same numbers, less time on the CPU; "off"; "auto" (on

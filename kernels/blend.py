@@ -48,6 +48,12 @@ def tile_range(b, t_id, tile_start: ti.template(), isect_base: ti.template()):
     return base + tile_start[b, t_id], base + tile_start[b, t_id + 1]
 
 
+@ti.func
+def colour_of(packed: ti.template(), b, g):
+    """Gaussian ``g``'s colour [3] in pose ``b``'s records ``packed`` [B, N, Rec.SIZE]."""
+    return ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
+
+
 def _make_shade(config: RasterConfig):
     alpha_max, alpha_min, t_eps, tile = config.alpha_max, config.alpha_min, config.t_eps, config.tile_size
 
@@ -73,7 +79,7 @@ def _make_shade(config: RasterConfig):
             if next_T <= t_eps:
                 break
             vis = alpha * T
-            C += vis * ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
+            C += vis * colour_of(packed, b, g)
             D += vis * packed[b, g, Rec.DEPTH]
             T = next_T
         return C, T, D
@@ -285,8 +291,7 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
 @ti.func
 def _colour_and_depth(packed: ti.template(), aux: ti.template(), b, g):
     """The image blend's per-Gaussian terms: colour [3] and camera depth."""
-    return ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]]), \
-        packed[b, g, Rec.DEPTH]
+    return colour_of(packed, b, g), packed[b, g, Rec.DEPTH]
 
 
 @ti.func

@@ -20,7 +20,7 @@ import functools
 
 import taichi as ti
 
-from .blend import splat_walk, tile_range
+from .blend import colour_of, splat_walk, tile_range
 from .config import RasterConfig
 from .footprint import SIGMA_MARGIN
 from .grain import item, spread
@@ -115,7 +115,7 @@ def blend_grad_func(config: RasterConfig, masked: bool):
                 next_T = T * (1.0 - alpha)
                 if next_T <= t_eps:
                     break
-                col = ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]])
+                col = colour_of(packed, b, g)
                 C += alpha * T * col
                 dT, dC = chain_step(alpha, raw >= alpha_max, T, dx, dy, ca, cb, cc, col,
                                     record_derivatives(dpacked, b, g), dT, dC)
@@ -132,8 +132,7 @@ def blend_grad_func(config: RasterConfig, masked: bool):
 @ti.func
 def _colour_and_derivatives(packed: ti.template(), dpacked: ti.template(), b, g):
     """The derivative blend's per-Gaussian terms: colour [3] and its record's derivatives D [5, 6]."""
-    return ti.Vector([packed[b, g, Rec.RGB], packed[b, g, Rec.RGB + 1], packed[b, g, Rec.RGB + 2]]), \
-        record_derivatives(dpacked, b, g)
+    return colour_of(packed, b, g), record_derivatives(dpacked, b, g)
 
 
 @ti.func

@@ -24,6 +24,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -62,13 +63,12 @@ def child() -> dict:
 
 def run(setting: str, cold: bool = False) -> dict:
     env = dict(os.environ, **SETTINGS[setting])
-    if cold:
-        import tempfile
-
-        env["HGSLOC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hgsloc_cold_cache_")
     if "PYTHONPATH" in SETTINGS[setting]:
         env["PYTHONPATH"] = SETTINGS[setting]["PYTHONPATH"] + os.pathsep + os.environ.get("PYTHONPATH", "")
-    p = subprocess.run([sys.executable, __file__, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
+    with tempfile.TemporaryDirectory(prefix="hgsloc_cold_cache_") as empty:  # removed with the kernels compiled
+        if cold:
+            env["HGSLOC_CACHE_DIR"] = empty
+        p = subprocess.run([sys.executable, __file__, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({setting}):\n{p.stderr[-3000:]}")
     return json.loads(p.stdout)

@@ -1,12 +1,12 @@
 """Tile binning and depth ordering, in Taichi (CONVENTIONS §6 step 6).
 
-Per pose: gather the visible Gaussians, sort them by depth with a stable LSD radix sort (3 passes) on the float bits
-(depths are positive, so the bit pattern orders like the value), then a stable counting sort by tile id
-(count, prefix sum, scatter). Each tile's list therefore ends up in depth order, ties in index order, the
-same key order as gsplat's (tile | depth) sort. Each Gaussian's tile rectangle travels through the radix
-passes packed in two words beside its id, so the tile passes read it in order instead of gathering it by id; a
-Gaussian goes into the tiles of its footprint only (``footprint.py``: its box, or the box's tiles its ellipse
-meets).
+Per pose: gather the visible Gaussians as 64-bit keys ``depth bits << 32 | index``, sort them with a stable LSD
+radix sort (3 passes) on the depth bits (depths are positive, so the bit pattern orders like the value), then a
+stable counting sort by tile id (count, prefix sum, scatter). Each tile's list therefore ends up in depth order,
+ties in index order, the same key order as gsplat's (tile | depth) sort. Each Gaussian's tile box travels through
+the radix passes packed in one word beside its key, so the tile passes read it in order instead of gathering it
+by id; the digit counts of all passes are taken while gathering, in a local array. A Gaussian goes into the tiles
+of its footprint only (``footprint.py``: its box, or the box's tiles its ellipse meets).
 Poses are processed in parallel, each pose serially;
 this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
 ``tests/reference/render_torch.py::bin_tiles``.
@@ -31,7 +31,8 @@ from .grain import item, spread
 from .radix import block_size, blocks, passes, scan_rows, sort_passes
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
-RADIX = 1 << RADIX_BITS  # histogram buckets per pose: the workspace's ``hist`` is [B, RADIX]
+RADIX_PASSES = 3  # 33 bits: a positive float's 31
+RADIX = 1 << RADIX_BITS  # histogram buckets per pass
 RADIX_MASK = RADIX - 1
 
 
@@ -49,6 +50,27 @@ def count_tiles(ntiles: ti.template(), num_poses, num_gaussians, totals: ti.temp
             totals[b] = s
 
 
+@ti.func
+def pack_box(rect: ti.template(), b, i):
+    """The tile box of ``rect[b, i]`` (x0, y0, x1, y1, each < 2^15) packed in one word: x0, x1, y0, y1 in 16 bits
+    each, low to high (``tile_sort``'s ``boxes``)."""
+    return (ti.cast(rect[b, i, 0], ti.u64) | (ti.cast(rect[b, i, 2], ti.u64) << ti.u64(16))
+            | (ti.cast(rect[b, i, 1], ti.u64) << ti.u64(32)) | (ti.cast(rect[b, i, 3], ti.u64) << ti.u64(48)))
+
+
+@ti.func
+def key_id(v):
+    """The Gaussian index in the low word of a serial-sort key ``depth bits << 32 | index``."""
+    return ti.cast(v & ti.u64(0xFFFFFFFF), ti.i32)
+
+
+@ti.func
+def unpack_box(v):
+    """(x0, x1, y0, y1) of a tile box packed by :func:`pack_box`."""
+    return (ti.cast(v & ti.u64(0xFFFF), ti.i32), ti.cast((v >> ti.u64(16)) & ti.u64(0xFFFF), ti.i32),
+            ti.cast((v >> ti.u64(32)) & ti.u64(0xFFFF), ti.i32), ti.cast(v >> ti.u64(48), ti.i32))
+
+
 @functools.cache
 def tile_sort_kernel(config: RasterConfig, ellipse: bool):
     """Compiled sorting kernel; ``ellipse``: each Gaussian into the tiles of its footprint mask (``footprint.py``,
@@ -58,11 +80,10 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
         depth [B, >= N], rect [B, >= N, footprint.RECT_SIZE], ntiles [B, >= N], isect_base [B] (start of each
         pose in ``isect``),
         tiles_x, tiles_y, num_poses, num_gaussians N (a pooled workspace may hold more columns);
-        scratch: keys_a, keys_b [B, N] u32, ids_a, ids_b [B, N] i32, rects [4, B, N] i32 (packed x and y tile
-        ranges, two ping-pong pairs), hist [B, RADIX] i32, cursor [B, T] i32;
+        scratch: keys [2, B, N] u64 (``depth bits << 32 | Gaussian id``, ping-pong), boxes [2, B, N] u64 (the
+        tile box beside each key), visible [B] i32, cursor [B, T] i32;
         outputs: tile_start [B, T + 1] (offsets relative to isect_base[b]), isect [M] Gaussian ids.
     """
-
     @ti.kernel
     def tile_sort(
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
@@ -73,12 +94,9 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
         tiles_y: ti.i32,
         num_poses: ti.i32,
         num_gaussians: ti.i32,
-        keys_a: ti.types.ndarray(dtype=ti.u32, ndim=2),
-        keys_b: ti.types.ndarray(dtype=ti.u32, ndim=2),
-        ids_a: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        ids_b: ti.types.ndarray(dtype=ti.i32, ndim=2),
-        rects: ti.types.ndarray(dtype=ti.i32, ndim=3),
-        hist: ti.types.ndarray(dtype=ti.i32, ndim=2),
+        keys: ti.types.ndarray(dtype=ti.u64, ndim=3),
+        boxes: ti.types.ndarray(dtype=ti.u64, ndim=3),
+        visible: ti.types.ndarray(dtype=ti.i32, ndim=1),
         cursor: ti.types.ndarray(dtype=ti.i32, ndim=2),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
@@ -89,52 +107,45 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
         for task in range(num_poses * stride):
             is_item, b, _ = item(task, stride, 1)
             if is_item:
+                # gather the visible Gaussians with the digit counts of every pass (local: a histogram in a device
+                # buffer cost 2-3x, its every update a load of the buffer's address)
+                hist = ti.Vector([0] * (RADIX_PASSES * RADIX), ti.i32)
                 m = 0
                 for i in range(n):
                     if ntiles[b, i] > 0:
-                        ids_a[b, m] = i
-                        keys_a[b, m] = ti.bit_cast(depth[b, i], ti.u32)
-                        rects[0, b, m] = rect[b, i, 0] | (rect[b, i, 2] << 16)
-                        rects[1, b, m] = rect[b, i, 1] | (rect[b, i, 3] << 16)
+                        key = ti.bit_cast(depth[b, i], ti.u32)
+                        keys[0, b, m] = (ti.cast(key, ti.u64) << ti.u64(32)) | ti.cast(i, ti.u64)
+                        boxes[0, b, m] = pack_box(rect, b, i)
+                        for p in ti.static(range(RADIX_PASSES)):
+                            hist[p * RADIX + ti.cast((key >> (RADIX_BITS * p)) & RADIX_MASK, ti.i32)] += 1
                         m += 1
-                # stable LSD radix sort, 3 passes of 11, 11 and 10 bits (one pass over the keys fewer than 4 x 8; the
-                # 2048-bucket histogram still fits the L1 cache): a -> b -> a -> b, the sorted run ends in b
-                for p in ti.static(range(3)):
-                    shift = ti.static(RADIX_BITS * p)
-                    src_k = ti.static(keys_a if p % 2 == 0 else keys_b)
-                    dst_k = ti.static(keys_b if p % 2 == 0 else keys_a)
-                    src_i = ti.static(ids_a if p % 2 == 0 else ids_b)
-                    dst_i = ti.static(ids_b if p % 2 == 0 else ids_a)
-                    src_r = ti.static(0 if p % 2 == 0 else 2)
-                    dst_r = ti.static(2 if p % 2 == 0 else 0)
-                    for k in range(RADIX):
-                        hist[b, k] = 0
-                    for j in range(m):
-                        hist[b, ti.cast((src_k[b, j] >> shift) & RADIX_MASK, ti.i32)] += 1
+                visible[b] = m
+                # stable LSD radix sort on the depth bits, 3 passes of 11, 11 and 10 bits (the 2048-bucket
+                # histogram fits the L1 cache): 0 -> 1 -> 0 -> 1, the sorted run ends in 1
+                for p in ti.static(range(RADIX_PASSES)):
+                    shift = ti.static(32 + RADIX_BITS * p)
+                    src = ti.static(p % 2)
                     acc = 0
-                    for k in range(RADIX):
-                        c = hist[b, k]
-                        hist[b, k] = acc
+                    for k in range(p * RADIX, (p + 1) * RADIX):
+                        c = hist[k]
+                        hist[k] = acc
                         acc += c
                     for j in range(m):
-                        key = src_k[b, j]
-                        digit = ti.cast((key >> shift) & RADIX_MASK, ti.i32)
-                        pos = hist[b, digit]
-                        hist[b, digit] = pos + 1
-                        dst_k[b, pos] = key
-                        dst_i[b, pos] = src_i[b, j]
-                        rects[dst_r, b, pos] = rects[src_r, b, j]
-                        rects[dst_r + 1, b, pos] = rects[src_r + 1, b, j]
+                        v = keys[src, b, j]
+                        digit = ti.cast((v >> shift) & RADIX_MASK, ti.i32) + p * RADIX
+                        pos = hist[digit]
+                        hist[digit] = pos + 1
+                        keys[1 - src, b, pos] = v
+                        boxes[1 - src, b, pos] = boxes[src, b, j]
                 # stable counting sort by tile id, visiting Gaussians in depth order
                 for t in range(num_tiles):
                     cursor[b, t] = 0
                 for j in range(m):
-                    rx = rects[2, b, j]
-                    ry = rects[3, b, j]
-                    mask = read_mask(rect, b, ids_b[b, j], ellipse)
+                    x0, x1, y0, y1 = unpack_box(boxes[1, b, j])
+                    mask = read_mask(rect, b, key_id(keys[1, b, j]), ellipse)
                     k = 0
-                    for ty in range(ry & 0xFFFF, ry >> 16):
-                        for tx in range(rx & 0xFFFF, rx >> 16):
+                    for ty in range(y0, y1):
+                        for tx in range(x0, x1):
                             if in_footprint(mask, k, ellipse):
                                 cursor[b, ty * tiles_x + tx] += 1
                             k += 1
@@ -147,13 +158,12 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
                 tile_start[b, num_tiles] = acc2
                 base = ti.cast(isect_base[b], ti.i32)
                 for j in range(m):
-                    g = ids_b[b, j]
-                    rx = rects[2, b, j]
-                    ry = rects[3, b, j]
+                    g = key_id(keys[1, b, j])
+                    x0, x1, y0, y1 = unpack_box(boxes[1, b, j])
                     mask = read_mask(rect, b, g, ellipse)
                     k = 0
-                    for ty in range(ry & 0xFFFF, ry >> 16):
-                        for tx in range(rx & 0xFFFF, rx >> 16):
+                    for ty in range(y0, y1):
+                        for tx in range(x0, x1):
                             if in_footprint(mask, k, ellipse):
                                 t = ty * tiles_x + tx
                                 isect[base + cursor[b, t]] = g

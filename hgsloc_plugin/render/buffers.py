@@ -17,7 +17,6 @@ from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
 from ..kernels.readback import readback_kernel
-from ..kernels.tile_sort import RADIX
 
 logger = logging.getLogger("hgsloc_plugin.render")
 
@@ -47,9 +46,9 @@ class ProjectionRecords:
     Attributes:
         depth [B, n]; rect [B, n, RECT_SIZE] (tile box and footprint mask, ``kernels/footprint.py``); ntiles
         [B, n] (tiles in the footprint; 0: culled); packed [B, n, Rec.SIZE]
-        (the blend's record per Gaussian); keys_a / keys_b / ids_a / ids_b [B, n] and rects [4, B, n]: the
-        serial sort's scratch; offsets [B * n + 1]: the parallel sort's prefix sum of ``ntiles`` (None for the
-        other sort).
+        (the blend's record per Gaussian); keys / boxes [2, B, n] u64 and visible [B]: the serial sort's scratch
+        (``kernels/tile_sort.py``); offsets [B * n + 1]: the parallel sort's prefix sum of ``ntiles`` (None for
+        the other sort).
     """
 
     batch: int
@@ -58,11 +57,9 @@ class ProjectionRecords:
     rect: object
     ntiles: object
     packed: ti.Ndarray
-    keys_a: ti.Ndarray | None = None
-    keys_b: ti.Ndarray | None = None
-    ids_a: ti.Ndarray | None = None
-    ids_b: ti.Ndarray | None = None
-    rects: ti.Ndarray | None = None
+    keys: ti.Ndarray | None = None
+    boxes: ti.Ndarray | None = None
+    visible: ti.Ndarray | None = None
     offsets: ti.Ndarray | None = None
 
     @classmethod
@@ -72,8 +69,7 @@ class ProjectionRecords:
                   nd(ti.f32, (B, n, Rec.SIZE)))
         if parallel:
             return cls(*common, offsets=nd(ti.i64, (B * n + 1,)))
-        return cls(*common, nd(ti.u32, (B, n)), nd(ti.u32, (B, n)), nd(ti.i32, (B, n)), nd(ti.i32, (B, n)),
-                   nd(ti.i32, (4, B, n)))
+        return cls(*common, nd(ti.u64, (2, B, n)), nd(ti.u64, (2, B, n)), nd(ti.i32, (B,)))
 
 
 @dataclass
@@ -128,8 +124,8 @@ class StatBuffers:
 @dataclass
 class Workspace:
     """Buffers of one image size and tiling for up to ``batch`` poses: the poses and intrinsics uploaded, the tile
-    lists' starts [B, tx * ty + 1] and offsets isect_base [B], the serial sort's counters (hist [B, RADIX],
-    cursor [B, tx * ty]) or the parallel sort's tile counts [B * tx * ty], and, made on first
+    lists' starts [B, tx * ty + 1] and offsets isect_base [B], the serial sort's counters (cursor [B, tx * ty])
+    or the parallel sort's tile counts [B * tx * ty], and, made on first
     use, the blended images and the cost scratch."""
 
     batch: int
@@ -142,7 +138,6 @@ class Workspace:
     isect_base: ti.Ndarray  # [B]
     background: ti.Ndarray  # [3]
     tile_start: ti.Ndarray
-    hist: ti.Ndarray | None = None
     cursor: ti.Ndarray | None = None
     tile_counts: ti.Ndarray | None = None
     images: ImageBuffers | None = None
@@ -170,7 +165,7 @@ class Workspace:
                       background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:
             return cls(**common, tile_counts=nd(ti.i32, (B * tx * ty,)))
-        return cls(**common, hist=nd(ti.i32, (B, RADIX)), cursor=nd(ti.i32, (B, tx * ty)))
+        return cls(**common, cursor=nd(ti.i32, (B, tx * ty)))
 
 
 @dataclass

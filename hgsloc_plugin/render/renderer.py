@@ -242,8 +242,8 @@ class Renderer:
         ws.upload("isect_base", base)
         if not parallel:
             isect = self.pool.tile_lists(int(totals.sum()), parallel=False).isect
-            self._sort(rec.depth, rec.rect, rec.ntiles, ws.isect_base, tx, ty, B, self.n, rec.keys_a, rec.keys_b,
-                       rec.ids_a, rec.ids_b, rec.rects, ws.hist, ws.cursor, ws.tile_start, isect)
+            self._sort(rec.depth, rec.rect, rec.ntiles, ws.isect_base, tx, ty, B, self.n, rec.keys, rec.boxes,
+                       rec.visible, ws.cursor, ws.tile_start, isect)
 
     # ---- images and costs ----
 

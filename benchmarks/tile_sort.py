@@ -1,0 +1,138 @@
+"""The CPU's serial tile sort alone: its time per pose against another checkout's, measured in the same run.
+
+Usage: python benchmarks/tile_sort.py --before DIR [--cases snow_sharp room room_x20] [--rounds 3]
+                                      [--repeats 30] [--out FILE]
+
+Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set),
+at the final scoring size, on poses about one pixel around the query's prior: the serial tile sort kernel
+(``RasterConfig.sort="serial"``, ``kernels/tile_sort.py``) timed alone, the device synchronised on each side of
+it (``Renderer._sort`` wrapped while the renderer's projection and sort run), for one pose (median of
+``--repeats`` calls) and per pose of a 12-pose batch; then the same in the checkout ``DIR`` (the code before a
+change: a ``git worktree`` with ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its
+``kernels/`` and ``adapters/``, as ``startup.py --before`` needs). Each side runs in processes of its own,
+``--rounds`` times, alternating; a row gives the median over the rounds, the speed-up (before / this checkout) and
+whether both made the same tile lists (their starts and entries, bit for bit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def child(case: str, repeats: int) -> dict:
+    """Times of the sort alone in this process's checkout (the ``--child`` side)."""
+    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import taichi as ti
+    from throughput import case_priors, load
+
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.refine.plan import make_plan
+
+    cam, scene, qs, bg = load(case)
+    prior = case_priors(case, qs, 2.0, 1.0)[0]
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=hp.RasterConfig(sort="serial"))
+    plan = make_plan(refiner.config, scene, cam, prior, hp.QueryPrior())
+    f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
+    poses = [se3_noise(prior, np.degrees(1.0 / f), plan.depth / f, np.random.default_rng(s)) for s in range(12)]
+    renderer = refiner._working_set(plan)
+    renderer.render_full(plan.cam_final, poses[:1], bg)
+    renderer = getattr(renderer, "covering", lambda p: renderer)(poses)  # the working set's renderer
+    spent: list[float] = []
+    sort = renderer._sort
+
+    def timed(*args):
+        ti.sync()
+        t0 = time.perf_counter()
+        sort(*args)
+        ti.sync()
+        spent.append(time.perf_counter() - t0)
+
+    renderer._sort = timed
+    out = {}
+    for label, batch in (("one", poses[:1]), ("batch", poses)):
+        ws = renderer._workspace(plan.cam_final, len(batch))
+        renderer._geometry(plan.cam_final, batch, ws, bg)  # warm-up
+        spent.clear()
+        for _ in range(repeats):
+            renderer._geometry(plan.cam_final, batch, ws, bg)
+        out[label] = 1000 * float(np.median(spent)) / len(batch)
+        starts = ws.tile_start.to_numpy()[:len(batch)]
+        lists = renderer.pool.lists.isect.to_numpy()[:int(starts[:, -1].sum())]
+        out[label + "_lists"] = hashlib.sha256(starts.tobytes() + lists.tobytes()).hexdigest()[:16]
+        if label == "one":
+            nt = renderer.pool.records.ntiles.to_numpy()[0, :renderer.n]
+            out.update(gaussians=renderer.n, visible=int((nt > 0).sum()), entries=int(starts[0, -1]),
+                       size=f"{plan.cam_final.width}x{plan.cam_final.height}")
+    return out
+
+
+def run(checkout: Path, case: str, repeats: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, str(checkout / "benchmarks" / "tile_sort.py"), "--child", case,
+                        "--repeats", str(repeats)], capture_output=True, text=True, env=env, cwd=checkout)
+    if p.returncode != 0:
+        raise RuntimeError(f"child failed ({checkout}, {case}):\n{p.stderr[-3000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--before", type=Path, help="the checkout to measure as the reference (see above)")
+    ap.add_argument("--cases", nargs="+", default=["snow_sharp", "room", "room_x20"])
+    ap.add_argument("--rounds", type=int, default=3, help="processes per side and case, alternating")
+    ap.add_argument("--repeats", type=int, default=30, help="timed sorts per process and batch")
+    ap.add_argument("--out", type=Path, help="also write the Markdown table here")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(child(a.child, a.repeats)))
+        return
+    if a.before is None:
+        ap.error("--before DIR is required (the checkout to compare with)")
+    before = a.before.resolve()
+    if not (before / "hgsloc_plugin" / "kernels").exists():
+        raise SystemExit(f"{before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
+    if not (before / "benchmarks" / "tile_sort.py").exists():  # the reference may predate this script
+        (before / "benchmarks" / "tile_sort.py").write_bytes(Path(__file__).read_bytes())
+    rows = ["| case | Gaussians rendered | size | visible | entries | sort ms, one pose: before / now | per pose of "
+            "12: before / now | speed-up: one / 12 | same lists |", "|---|---|---|---|---|---|---|---|---|"]
+    for case in a.cases:
+        got: dict[str, list[dict]] = {"before": [], "now": []}
+        for _ in range(a.rounds):
+            for side, path in (("before", before), ("now", ROOT)):
+                got[side].append(run(path, case, a.repeats))
+                print(f"{case} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
+        med = {s: {k: float(np.median([r[k] for r in got[s]])) for k in ("one", "batch")} for s in got}
+        r0 = got["now"][0]
+        same = all(r[k] == r0[k] for s in got for r in got[s] for k in ("one_lists", "batch_lists"))
+        rows.append(f"| {case} | {r0['gaussians']:,} | {r0['size']} | {r0['visible']:,} | {r0['entries']:,} | "
+                    f"{med['before']['one']:.2f} / {med['now']['one']:.2f} | {med['before']['batch']:.2f} / "
+                    f"{med['now']['batch']:.2f} | {med['before']['one'] / med['now']['one']:.2f}x / "
+                    f"{med['before']['batch'] / med['now']['batch']:.2f}x | {'yes' if same else 'NO'} |")
+        print(rows[-1], flush=True)
+    if a.out:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from real_photos import write_keeping_notes
+
+        write_keeping_notes(a.out, ["# Serial tile sort (`benchmarks/tile_sort.py`)", "",
+                                    f"Regenerate: `python benchmarks/tile_sort.py --before DIR --out {a.out}`",
+                                    "(DIR: the checkout before the change, see the script).", "",
+                                    f"Backend cpu; {a.rounds} processes per side and case, alternating; "
+                                    f"{a.repeats} timed sorts each.", "", *rows])
+
+
+if __name__ == "__main__":
+    main()

@@ -11,7 +11,8 @@ it (``Renderer._sort`` wrapped while the renderer's projection and sort run), fo
 change: a ``git worktree`` with ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its
 ``kernels/`` and ``adapters/``, as ``startup.py --before`` needs). Each side runs in processes of its own,
 ``--rounds`` times, alternating; a row gives the median over the rounds, the speed-up (before / this checkout) and
-whether both made the same tile lists (their starts and entries, bit for bit).
+whether both made the same tile lists (their starts and entries, bit for bit), and the share of the CPU time the
+hypervisor took meanwhile (``benchmarks/machine.py``).
 """
 
 from __future__ import annotations
@@ -107,24 +108,29 @@ def main() -> None:
         raise SystemExit(f"{before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
     if not (before / "benchmarks" / "tile_sort.py").exists():  # the reference may predate this script
         (before / "benchmarks" / "tile_sort.py").write_bytes(Path(__file__).read_bytes())
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from machine import StealClock
+
     rows = ["| case | Gaussians rendered | size | visible | entries | sort ms, one pose: before / now | per pose of "
-            "12: before / now | speed-up: one / 12 | same lists |", "|---|---|---|---|---|---|---|---|---|"]
+            "12: before / now | speed-up: one / 12 | same lists | steal % |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for case in a.cases:
         got: dict[str, list[dict]] = {"before": [], "now": []}
-        for _ in range(a.rounds):
-            for side, path in (("before", before), ("now", ROOT)):
-                got[side].append(run(path, case, a.repeats))
-                print(f"{case} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
+        with StealClock() as steal:
+            for _ in range(a.rounds):
+                for side, path in (("before", before), ("now", ROOT)):
+                    got[side].append(run(path, case, a.repeats))
+                    print(f"{case} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
         med = {s: {k: float(np.median([r[k] for r in got[s]])) for k in ("one", "batch")} for s in got}
         r0 = got["now"][0]
         same = all(r[k] == r0[k] for s in got for r in got[s] for k in ("one_lists", "batch_lists"))
         rows.append(f"| {case} | {r0['gaussians']:,} | {r0['size']} | {r0['visible']:,} | {r0['entries']:,} | "
                     f"{med['before']['one']:.2f} / {med['now']['one']:.2f} | {med['before']['batch']:.2f} / "
                     f"{med['now']['batch']:.2f} | {med['before']['one'] / med['now']['one']:.2f}x / "
-                    f"{med['before']['batch'] / med['now']['batch']:.2f}x | {'yes' if same else 'NO'} |")
+                    f"{med['before']['batch'] / med['now']['batch']:.2f}x | {'yes' if same else 'NO'} | "
+                    f"{100 * steal.share:.0f} |")
         print(rows[-1], flush=True)
     if a.out:
-        sys.path.insert(0, str(ROOT / "benchmarks"))
         from real_photos import write_keeping_notes
 
         write_keeping_notes(a.out, ["# Serial tile sort (`benchmarks/tile_sort.py`)", "",

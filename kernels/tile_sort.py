@@ -8,8 +8,8 @@ the radix passes packed in one word beside its key, so the tile passes read it i
 by id; the digit counts of all passes are taken while gathering, in a local array. A Gaussian goes into the tiles
 of its footprint only (``footprint.py``: its box, or the box's tiles its ellipse meets).
 Poses are processed in parallel, each pose serially;
-this suits the CPU backend (``RasterConfig.sort="serial"``). Reference twin:
-``tests/reference/render_torch.py::bin_tiles``.
+this suits the CPU backend (``RasterConfig.sort="serial"``; its 24 KB of digit counts per pose sit in the cache
+there, in slow local memory on a GPU). Reference twin: ``tests/reference/render_torch.py::bin_tiles``.
 
 On a GPU one thread per pose is the slowest way to sort (a whole pose's radix passes on one thread).
 There (``sort="parallel"``) each visible Gaussian writes one 64-bit key per tile it touches, in parallel,

@@ -81,9 +81,10 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
         pose in ``isect``),
         tiles_x, tiles_y, num_poses, num_gaussians N (a pooled workspace may hold more columns);
         scratch: keys [2, B, N] u64 (``depth bits << 32 | Gaussian id``, ping-pong), boxes [2, B, N] u64 (the
-        tile box beside each key), visible [B] i32, cursor [B, T] i32;
+        tile box beside each key), cursor [B, T] i32;
         outputs: tile_start [B, T + 1] (offsets relative to isect_base[b]), isect [M] Gaussian ids.
     """
+
     @ti.kernel
     def tile_sort(
         depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
@@ -96,7 +97,6 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
         num_gaussians: ti.i32,
         keys: ti.types.ndarray(dtype=ti.u64, ndim=3),
         boxes: ti.types.ndarray(dtype=ti.u64, ndim=3),
-        visible: ti.types.ndarray(dtype=ti.i32, ndim=1),
         cursor: ti.types.ndarray(dtype=ti.i32, ndim=2),
         tile_start: ti.types.ndarray(dtype=ti.i32, ndim=2),
         isect: ti.types.ndarray(dtype=ti.i32, ndim=1),
@@ -119,7 +119,6 @@ def tile_sort_kernel(config: RasterConfig, ellipse: bool):
                         for p in ti.static(range(RADIX_PASSES)):
                             hist[p * RADIX + ti.cast((key >> (RADIX_BITS * p)) & RADIX_MASK, ti.i32)] += 1
                         m += 1
-                visible[b] = m
                 # stable LSD radix sort on the depth bits, 3 passes of 11, 11 and 10 bits (the 2048-bucket
                 # histogram fits the L1 cache): 0 -> 1 -> 0 -> 1, the sorted run ends in 1
                 for p in ti.static(range(RADIX_PASSES)):

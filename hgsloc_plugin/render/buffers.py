@@ -46,7 +46,7 @@ class ProjectionRecords:
     Attributes:
         depth [B, n]; rect [B, n, RECT_SIZE] (tile box and footprint mask, ``kernels/footprint.py``); ntiles
         [B, n] (tiles in the footprint; 0: culled); packed [B, n, Rec.SIZE]
-        (the blend's record per Gaussian); keys / boxes [2, B, n] u64 and visible [B]: the serial sort's scratch
+        (the blend's record per Gaussian); keys / boxes [2, B, n] u64: the serial sort's scratch
         (``kernels/tile_sort.py``); offsets [B * n + 1]: the parallel sort's prefix sum of ``ntiles`` (None for
         the other sort).
     """
@@ -59,7 +59,6 @@ class ProjectionRecords:
     packed: ti.Ndarray
     keys: ti.Ndarray | None = None
     boxes: ti.Ndarray | None = None
-    visible: ti.Ndarray | None = None
     offsets: ti.Ndarray | None = None
 
     @classmethod
@@ -69,7 +68,7 @@ class ProjectionRecords:
                   nd(ti.f32, (B, n, Rec.SIZE)))
         if parallel:
             return cls(*common, offsets=nd(ti.i64, (B * n + 1,)))
-        return cls(*common, nd(ti.u64, (2, B, n)), nd(ti.u64, (2, B, n)), nd(ti.i32, (B,)))
+        return cls(*common, nd(ti.u64, (2, B, n)), nd(ti.u64, (2, B, n)))
 
 
 @dataclass

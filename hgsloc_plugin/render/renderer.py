@@ -243,7 +243,7 @@ class Renderer:
         if not parallel:
             isect = self.pool.tile_lists(int(totals.sum()), parallel=False).isect
             self._sort(rec.depth, rec.rect, rec.ntiles, ws.isect_base, tx, ty, B, self.n, rec.keys, rec.boxes,
-                       rec.visible, ws.cursor, ws.tile_start, isect)
+                       ws.cursor, ws.tile_start, isect)
 
     # ---- images and costs ----
 

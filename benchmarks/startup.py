@@ -63,8 +63,6 @@ def child() -> dict:
 
 def run(setting: str, cold: bool = False) -> dict:
     env = dict(os.environ, **SETTINGS[setting])
-    if "PYTHONPATH" in SETTINGS[setting]:
-        env["PYTHONPATH"] = SETTINGS[setting]["PYTHONPATH"] + os.pathsep + os.environ.get("PYTHONPATH", "")
     with tempfile.TemporaryDirectory(prefix="hgsloc_cold_cache_") as empty:  # removed with the kernels compiled
         if cold:
             env["HGSLOC_CACHE_DIR"] = empty
@@ -85,10 +83,11 @@ def main() -> None:
     if args.child:
         print(json.dumps(child()))
         return
+    sys.path.insert(0, str(ROOT / "benchmarks"))
     if args.before:
-        if not (args.before / "hgsloc_plugin" / "kernels").exists():
-            raise SystemExit(f"{args.before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
-        SETTINGS[f"before ({args.before.name})"] = {"PYTHONPATH": str(args.before.resolve())}
+        from machine import checkout_env
+
+        SETTINGS[f"before ({args.before.name})"] = {"PYTHONPATH": checkout_env(args.before)["PYTHONPATH"]}
     if not args.cold:
         run("default")  # untimed: fills the offline cache
     rows = []
@@ -123,7 +122,6 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        sys.path.insert(0, str(ROOT / "benchmarks"))
         from real_photos import write_keeping_notes
 
         write_keeping_notes(args.out, text.rstrip("\n").split("\n"))

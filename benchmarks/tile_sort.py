@@ -9,7 +9,8 @@ at the final scoring size, on poses about one pixel around the query's prior: th
 it (``Renderer._sort`` wrapped while the renderer's projection and sort run), for one pose (median of
 ``--repeats`` calls) and per pose of a 12-pose batch; then the same in the checkout ``DIR`` (the code before a
 change: a ``git worktree`` with ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its
-``kernels/`` and ``adapters/``, as ``startup.py --before`` needs). Each side runs in processes of its own,
+``kernels/`` and ``adapters/``, as ``startup.py --before`` needs; this script runs on both sides, each importing
+its side's package, which the child reports and the parent checks). Each side runs in processes of its own,
 ``--rounds`` times, alternating; a row gives the median over the rounds, the speed-up (before / this checkout) and
 whether both made the same tile lists (their starts and entries, bit for bit), and the share of the CPU time the
 hypervisor took meanwhile (``benchmarks/machine.py``).
@@ -29,21 +30,25 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from machine import StealClock, checkout_env  # noqa: E402
 
 
 def child(case: str, repeats: int) -> dict:
-    """Times of the sort alone in this process's checkout (the ``--child`` side)."""
-    sys.path.insert(0, str(ROOT))
-    sys.path.insert(0, str(ROOT / "benchmarks"))
+    """Times of the sort alone in the package this process imports (the ``--child`` side), and where that package
+    lies (``checkout``)."""
+    import importlib
+
     import taichi as ti
-    from throughput import case_priors, load
 
     import hgsloc_plugin as hp
     from hgsloc_plugin.noise import se3_noise
     from hgsloc_plugin.refine.plan import make_plan
 
-    cam, scene, qs, bg = load(case)
-    prior = case_priors(case, qs, 2.0, 1.0)[0]
+    throughput = importlib.import_module("throughput")  # after the package: it puts this checkout first on the path
+    cam, scene, qs, bg = throughput.load(case)
+    prior = throughput.case_priors(case, qs, 2.0, 1.0)[0]
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=hp.RasterConfig(sort="serial"))
     plan = make_plan(refiner.config, scene, cam, prior, hp.QueryPrior())
     f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
@@ -62,7 +67,7 @@ def child(case: str, repeats: int) -> dict:
         spent.append(time.perf_counter() - t0)
 
     renderer._sort = timed
-    out = {}
+    out = {"checkout": str(Path(hp.__file__).resolve().parents[1])}
     for label, batch in (("one", poses[:1]), ("batch", poses)):
         ws = renderer._workspace(plan.cam_final, len(batch))
         renderer._geometry(plan.cam_final, batch, ws, bg)  # warm-up
@@ -80,13 +85,18 @@ def child(case: str, repeats: int) -> dict:
     return out
 
 
-def run(checkout: Path, case: str, repeats: int) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, str(checkout / "benchmarks" / "tile_sort.py"), "--child", case,
-                        "--repeats", str(repeats)], capture_output=True, text=True, env=env, cwd=checkout)
+def run(checkout: Path | None, case: str, repeats: int) -> dict:
+    """The child's figures with the package of ``checkout`` (None: the installed one, this checkout's); this
+    checkout's script on both sides."""
+    env = checkout_env(checkout) if checkout is not None else dict(os.environ)
+    p = subprocess.run([sys.executable, __file__, "--child", case, "--repeats", str(repeats)], capture_output=True,
+                       text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
-        raise RuntimeError(f"child failed ({checkout}, {case}):\n{p.stderr[-3000:]}")
-    return json.loads(p.stdout.strip().splitlines()[-1])
+        raise RuntimeError(f"child failed ({checkout or ROOT}, {case}):\n{p.stderr[-3000:]}")
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    if Path(out["checkout"]) != (checkout or ROOT).resolve():
+        raise RuntimeError(f"the child imported the package from {out['checkout']}, not {checkout or ROOT}")
+    return out
 
 
 def main() -> None:
@@ -104,12 +114,7 @@ def main() -> None:
     if a.before is None:
         ap.error("--before DIR is required (the checkout to compare with)")
     before = a.before.resolve()
-    if not (before / "hgsloc_plugin" / "kernels").exists():
-        raise SystemExit(f"{before}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
-    if not (before / "benchmarks" / "tile_sort.py").exists():  # the reference may predate this script
-        (before / "benchmarks" / "tile_sort.py").write_bytes(Path(__file__).read_bytes())
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from machine import StealClock
+    checkout_env(before)  # checked before any run
 
     rows = ["| case | Gaussians rendered | size | visible | entries | sort ms, one pose: before / now | per pose of "
             "12: before / now | speed-up: one / 12 | same lists | steal % |",
@@ -118,7 +123,7 @@ def main() -> None:
         got: dict[str, list[dict]] = {"before": [], "now": []}
         with StealClock() as steal:
             for _ in range(a.rounds):
-                for side, path in (("before", before), ("now", ROOT)):
+                for side, path in (("before", before), ("now", None)):
                     got[side].append(run(path, case, a.repeats))
                     print(f"{case} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
         med = {s: {k: float(np.median([r[k] for r in got[s]])) for k in ("one", "batch")} for s in got}

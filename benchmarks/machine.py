@@ -9,8 +9,15 @@ benchmarks print it beside their figures.
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def cpu_ticks() -> tuple[int, int] | None:
@@ -47,3 +54,53 @@ def checkout_env(checkout: Path) -> dict[str, str]:
     if not (checkout / "hgsloc_plugin" / "kernels").exists():
         raise SystemExit(f"{checkout}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
     return dict(os.environ, PYTHONPATH=str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
+    """Run ``script --child ARGS`` (this checkout's script) importing the package of ``checkout`` (None: this
+    checkout's) and return the JSON object its last line prints; it must name, as ``checkout``, the folder its
+    package came from, which is checked."""
+    env = checkout_env(checkout) if checkout is not None else dict(os.environ)
+    p = subprocess.run([sys.executable, script, "--child", *args], capture_output=True, text=True, env=env,
+                       cwd=ROOT)
+    if p.returncode != 0:
+        raise RuntimeError(f"child failed ({checkout or ROOT}, {args}):\n{p.stderr[-3000:]}")
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    if Path(out["checkout"]) != (checkout or ROOT).resolve():
+        raise RuntimeError(f"the child imported the package from {out['checkout']}, not {checkout or ROOT}")
+    return out
+
+
+def alternate(before: Path, rounds: int, measure: Callable[[Path | None], dict], label: str
+              ) -> tuple[dict[str, list[dict]], float]:
+    """``measure(before)`` and ``measure(None)`` (this checkout) alternately, ``rounds`` times each: ({"before":
+    [...], "now": [...]}, the hypervisor's share of the CPU time meanwhile). Each result goes to stderr, under
+    ``label``."""
+    got: dict[str, list[dict]] = {"before": [], "now": []}
+    with StealClock() as steal:
+        for _ in range(rounds):
+            for side, path in (("before", before), ("now", None)):
+                got[side].append(measure(path))
+                print(f"{label} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
+    return got, steal.share
+
+
+def before_parser(doc: str, cases: list[str]) -> argparse.ArgumentParser:
+    """The options of a benchmark that compares this checkout with another one's (``--before DIR``, ``--cases``,
+    ``--rounds``, ``--out``, and the hidden ``--child CASE`` its own child processes run)."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--before", type=Path, help="the checkout to measure as the reference (see above)")
+    ap.add_argument("--cases", nargs="+", default=cases)
+    ap.add_argument("--rounds", type=int, default=3, help="processes per side and case, alternating")
+    ap.add_argument("--out", type=Path, help="also write the Markdown table here")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    return ap
+
+
+def before_checkout(ap: argparse.ArgumentParser, before: Path | None) -> Path:
+    """``--before``'s checkout, resolved and checked (``checkout_env``) before any run; a usage error without it."""
+    if before is None:
+        ap.error("--before DIR is required (the checkout to compare with)")
+    before = before.resolve()
+    checkout_env(before)
+    return before

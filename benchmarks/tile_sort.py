@@ -18,11 +18,8 @@ hypervisor took meanwhile (``benchmarks/machine.py``).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from machine import StealClock, checkout_env  # noqa: E402
+from machine import alternate, before_checkout, before_parser, run_child  # noqa: E402
 
 
 def child(case: str, repeats: int) -> dict:
@@ -85,47 +82,21 @@ def child(case: str, repeats: int) -> dict:
     return out
 
 
-def run(checkout: Path | None, case: str, repeats: int) -> dict:
-    """The child's figures with the package of ``checkout`` (None: the installed one, this checkout's); this
-    checkout's script on both sides."""
-    env = checkout_env(checkout) if checkout is not None else dict(os.environ)
-    p = subprocess.run([sys.executable, __file__, "--child", case, "--repeats", str(repeats)], capture_output=True,
-                       text=True, env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise RuntimeError(f"child failed ({checkout or ROOT}, {case}):\n{p.stderr[-3000:]}")
-    out = json.loads(p.stdout.strip().splitlines()[-1])
-    if Path(out["checkout"]) != (checkout or ROOT).resolve():
-        raise RuntimeError(f"the child imported the package from {out['checkout']}, not {checkout or ROOT}")
-    return out
-
-
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--before", type=Path, help="the checkout to measure as the reference (see above)")
-    ap.add_argument("--cases", nargs="+", default=["snow_sharp", "room", "room_x20"])
-    ap.add_argument("--rounds", type=int, default=3, help="processes per side and case, alternating")
+    ap = before_parser(__doc__, ["snow_sharp", "room", "room_x20"])
     ap.add_argument("--repeats", type=int, default=30, help="timed sorts per process and batch")
-    ap.add_argument("--out", type=Path, help="also write the Markdown table here")
-    ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
         print(json.dumps(child(a.child, a.repeats)))
         return
-    if a.before is None:
-        ap.error("--before DIR is required (the checkout to compare with)")
-    before = a.before.resolve()
-    checkout_env(before)  # checked before any run
+    before = before_checkout(ap, a.before)
 
     rows = ["| case | Gaussians rendered | size | visible | entries | sort ms, one pose: before / now | per pose of "
             "12: before / now | speed-up: one / 12 | same lists | steal % |",
             "|---|---|---|---|---|---|---|---|---|---|"]
     for case in a.cases:
-        got: dict[str, list[dict]] = {"before": [], "now": []}
-        with StealClock() as steal:
-            for _ in range(a.rounds):
-                for side, path in (("before", before), ("now", None)):
-                    got[side].append(run(path, case, a.repeats))
-                    print(f"{case} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
+        args = [case, "--repeats", str(a.repeats)]
+        got, steal = alternate(before, a.rounds, lambda path, args=args: run_child(__file__, path, args), case)
         med = {s: {k: float(np.median([r[k] for r in got[s]])) for k in ("one", "batch")} for s in got}
         r0 = got["now"][0]
         same = all(r[k] == r0[k] for s in got for r in got[s] for k in ("one_lists", "batch_lists"))
@@ -133,7 +104,7 @@ def main() -> None:
                     f"{med['before']['one']:.2f} / {med['now']['one']:.2f} | {med['before']['batch']:.2f} / "
                     f"{med['now']['batch']:.2f} | {med['before']['one'] / med['now']['one']:.2f}x / "
                     f"{med['before']['batch'] / med['now']['batch']:.2f}x | {'yes' if same else 'NO'} | "
-                    f"{100 * steal.share:.0f} |")
+                    f"{100 * steal:.0f} |")
         print(rows[-1], flush=True)
     if a.out:
         from real_photos import write_keeping_notes

@@ -392,6 +392,56 @@ def test_cs_gradient_and_jtj_are_the_chain_rule_through_the_reference_window(nam
     assert np.linalg.norm(A - B) < 2e-3 * np.linalg.norm(B), (A, B)
 
 
+def test_longer_pays_where_two_steps_beat_one_on_the_parabola():
+    """``longer_pays``: on a parabola ``c(m) = c0 - S m + k m^2 / 2`` (minimum at ``m* = S / k``) the multiples
+    after the first are worth scoring exactly when ``m*`` is beyond ``longer_from`` steps; a first multiple that
+    does not lower the cost never pays, one that drops at least the linear prediction always does."""
+    from hgsloc_plugin.refine.polish import LONGER_FROM, longer_pays
+
+    S = 0.02
+    for m_star in (0.6, 1.0, 1.45, 1.55, 3.0, 20.0):
+        k = S / m_star
+        drop = S - 0.5 * k  # c0 - c(1)
+        assert longer_pays(drop, S, LONGER_FROM) == (m_star > LONGER_FROM), m_star
+    assert not longer_pays(0.0, S, LONGER_FROM) and not longer_pays(-1e-3, S, LONGER_FROM)
+    assert longer_pays(S, S, LONGER_FROM) and longer_pays(2 * S, S, LONGER_FROM)
+
+
+def test_line_search_scores_the_longer_multiples_only_where_they_pay():
+    """The first multiple of each step is rendered alone; the longer ones only when the parabola says they pay. With
+    the exact curvature (Gauss-Newton steps of the right length) no longer multiple is rendered and the polish ends
+    where scoring them all would; with the curvature overstated 4x they are rendered, and the polish needs no more
+    passes than when scoring them all in every line search."""
+    class Batches(_QuadraticCost):
+        def __init__(self, target, overstate):
+            super().__init__(target, overstate)
+            self.sizes = []
+
+        def window_cost(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.sizes.append(len(poses))
+            return super().window_cost(camera, poses, qstats, background, mask_alpha)
+
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    for overstate in (1.0, 4.0):
+        runs = {}
+        for longer_from in ("default", None):
+            fake = Batches(target, overstate)
+            kw = {} if longer_from == "default" else {"longer_from": None}
+            pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, **kw)
+            assert st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
+            assert pose.errors_to(target)[0] < 1e-3
+            runs[longer_from] = (pose, st, fake.sizes)
+        (pose, st, sizes), (pose_all, st_all, sizes_all) = runs["default"], runs[None]
+        assert sizes[0] == 1 and min(sizes_all) >= 2  # the first multiple alone, or all in one batch
+        if overstate == 1.0:
+            assert set(sizes) == {1} and st.renders < st_all.renders
+            assert pose.errors_to(pose_all)[0] < 1e-6 and st.passes == st_all.passes
+        else:
+            assert max(sizes) >= 2 and st.passes <= st_all.passes, (sizes, st.passes, st_all.passes)
+
+
 def test_line_search_extends_past_the_longest_multiple(monkeypatch):
     """With the Hessian overstated 40x (the 1M-Gaussian room's polish crawled like this), even 4 steps cover a
     tenth of the way: the line search goes on doubling while the longest multiple is the best, so the polish

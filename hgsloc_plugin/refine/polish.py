@@ -15,11 +15,14 @@ polish ends there, with the Hessian of the pose before it. A stage followed by a
 Gauss-Newton step under ``HANDOFF_PX`` without its pass and hands over (``Convergence.handoff_px``).
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
-(one batch of plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none
-lowers the cost the trial fails without a derivative pass. When the longest is the best, the search goes on
-(``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the trust region) while the
-cost falls, and the convergence test scales the next step by the multiple the last one needed (a Gauss-Newton
-step far too short is not convergence; ``benchmarks/defaults.md``). A stage that starts near its minimum scores
+(plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none lowers the
+cost the trial fails without a derivative pass. The first multiple is scored alone, the others (one batch) only when
+the parabola through the cost, its slope along the step (``g.xi``) and that render has its minimum beyond
+``LONGER_FROM`` (1.5) steps, where 2 steps would beat 1 on it (:func:`longer_pays`). When the longest scored is the
+best, the search goes on (``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the
+trust region) while the cost falls, and the convergence test scales the next step by the multiple the last one
+needed (a Gauss-Newton step far too short is not convergence; ``benchmarks/defaults.md``). A stage that starts
+near its minimum scores
 ``FINE_LINE_SEARCH`` (1, 2) instead: there four times the step rarely wins (``benchmarks/throughput.md``).
 """
 
@@ -45,6 +48,9 @@ LINE_SEARCH = (1.0, 2.0, 4.0)  # multiples of the step scored with the cost alon
 EXTEND = (2.0, 4.0)  # when the longest multiple is the best, the next ones (x its length), one batch at a time
 MAX_MULTIPLE = 64.0
 FINE_LINE_SEARCH = (1.0, 2.0)  # for a stage that starts near its minimum (after a coarser stage or the search)
+# the longer multiples are scored only when the parabola through the cost, its slope along the step and the first
+# multiple's cost has its minimum beyond this many first multiples (1.5: where 2 beats 1 on that parabola)
+LONGER_FROM = 1.5
 RETRY_SHRINK = 0.5  # after a failed trial, the next is at most this fraction of its image motion
 MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size) ends the polish: converged
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
@@ -118,10 +124,21 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
     return f * float(np.linalg.norm(xi[:3])) + f * float(np.linalg.norm(xi[3:])) / max(depth, 1e-12)
 
 
+def longer_pays(drop: float, linear: float, longer_from: float) -> bool:
+    """Whether a line search should score the multiples after its first: the parabola through the cost at the
+    step's start (falling at ``linear`` per first multiple: ``-g.xi`` times it) and at the first multiple (``drop``
+    below the start, as rendered) has its minimum beyond ``longer_from`` first multiples. False when the first
+    multiple does not lower the cost (``drop <= 0``); True when it drops at least the linear prediction."""
+    if not drop > 0:
+        return False
+    return drop >= linear or linear > 2.0 * longer_from * (linear - drop)
+
+
 def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
            converged: Convergence = FINAL, max_failures: int = 3,
-           line_search: tuple[float, ...] = LINE_SEARCH) -> tuple[Pose, PolishStats]:
+           line_search: tuple[float, ...] = LINE_SEARCH, longer_from: float | None = LONGER_FROM
+           ) -> tuple[Pose, PolishStats]:
     """Polish ``pose`` at ``camera``'s size against the query statistics ``qstats`` (``upload_window_query``).
 
     Args:
@@ -130,6 +147,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         allowed: the trust-region test.
         converged: the thresholds (``FINAL``; ``STAGE`` for a stage followed by a finer one).
         line_search: multiples of each step scored with the cost alone (``()``: none, every trial is a pass).
+        longer_from: the multiples after the first are scored only when :func:`longer_pays` (None: always, with
+            the first in one batch).
 
     Returns:
         (the best pose seen, its stats). The pose's cost is never above the start's.
@@ -181,8 +200,14 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 break
             continue
         if line_search:
-            cands = [(m, T) for m, T in multiples(line_search, pose, xi) if m == line_search[0] or allowed(T)]
+            first = line_search if longer_from is None else line_search[:1]
+            cands = [(m, T) for m, T in multiples(first, pose, xi) if m == line_search[0] or allowed(T)]
             lc = score(cands)
+            if (longer_from is not None and len(line_search) > 1
+                    and longer_pays(cost - float(lc[0]), -float(g @ xi) * line_search[0], longer_from)):
+                more = [(m, T) for m, T in multiples(line_search[1:], pose, xi) if allowed(T)]
+                if more:
+                    cands, lc = cands + more, np.concatenate([lc, score(more)])
             j = int(np.argmin(lc))
             if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
                 lam = min(lam * 10.0, LAMBDA_MAX)
@@ -192,7 +217,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                     stats.stopped = "no decrease"
                     break
                 continue
-            while j == len(cands) - 1 and cands[j][0] < MAX_MULTIPLE:  # the longest was best: go further
+            longer = longer_from is None or len(cands) > 1  # else the first alone was scored: no extension
+            while longer and j == len(cands) - 1 and cands[j][0] < MAX_MULTIPLE:  # the longest was best: go further
                 more = [(m, T) for m, T in multiples([k * cands[j][0] for k in EXTEND], pose, xi) if allowed(T)]
                 if not more:
                     break

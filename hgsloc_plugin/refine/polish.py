@@ -22,8 +22,8 @@ the parabola through the cost, its slope along the step (``g.xi``) and that rend
 best, the search goes on (``EXTEND``: 2 and 4 times it, one batch at a time, up to ``MAX_MULTIPLE``, inside the
 trust region) while the cost falls, and the convergence test scales the next step by the multiple the last one
 needed (a Gauss-Newton step far too short is not convergence; ``benchmarks/defaults.md``). A stage that starts
-near its minimum scores
-``FINE_LINE_SEARCH`` (1, 2) instead: there four times the step rarely wins (``benchmarks/throughput.md``).
+near its minimum scores ``FINE_LINE_SEARCH`` (1, 2) instead: there four times the step rarely wins
+(``benchmarks/throughput.md``).
 """
 
 from __future__ import annotations
@@ -126,9 +126,10 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
 
 def longer_pays(drop: float, linear: float, longer_from: float) -> bool:
     """Whether a line search should score the multiples after its first: the parabola through the cost at the
-    step's start (falling at ``linear`` per first multiple: ``-g.xi`` times it) and at the first multiple (``drop``
-    below the start, as rendered) has its minimum beyond ``longer_from`` first multiples. False when the first
-    multiple does not lower the cost (``drop <= 0``); True when it drops at least the linear prediction."""
+    step's start, with the slope that predicts a decrease ``linear`` at the first multiple (``-g.xi`` times it),
+    and through the decrease ``drop`` rendered there has its minimum beyond ``longer_from`` first multiples.
+    False when the first multiple does not lower the cost (``drop <= 0``); True when it drops at least ``linear``
+    (the parabola opens downwards or is a line)."""
     if not drop > 0:
         return False
     return drop >= linear or linear > 2.0 * longer_from * (linear - drop)

@@ -102,7 +102,7 @@ def test_parallel_sort_refines_to_the_same_pose():
     cfg = hp.RefineConfig(working_set_min=0)  # working sets: pooled buffers wider than the Gaussians sorted
     res = [hp.HGSLocPlugin(scene, cfg, raster=hp.RasterConfig(sort=s)).refine(img, cam, prior)
            for s in ("serial", "parallel")]
-    assert res[0].renders == res[1].renders and res[0].renders > 20
+    assert res[0].renders == res[1].renders and res[0].renders > 12  # a whole refinement: line searches, the rule
     np.testing.assert_array_equal(res[0].pose.qvec, res[1].pose.qvec)
     np.testing.assert_array_equal(res[0].pose.tvec, res[1].pose.tvec)
     assert res[0].pose.errors_to(gt)[0] < prior.errors_to(gt)[0]

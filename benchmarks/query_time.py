@@ -1,12 +1,12 @@
 """Per-query time of the default refinement against another checkout's, measured in the same run.
 
-Usage: python benchmarks/query_time.py --before DIR [--cases snow_sharp snow] [--seeds 7 8] [--rounds 3]
-                                       [--out FILE]
+Usage: python benchmarks/query_time.py --before DIR [--cases snow_sharp snow lego room] [--seeds 7 8]
+                                       [--rounds 3] [--out FILE]
 
-Per case (the maps, queries and priors of ``benchmarks/throughput.py``: 2 % of the depth / 1 deg, one prior per
-query and seed in ``--seeds``), one query at a time (``refine_many(batch_size=1)``) after an untimed one: seconds
-per query and per stage (``throughput.stage_clock``), renders and derivative passes per query and the returned
-poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
+Per case (the maps, queries and priors of ``benchmarks/throughput.py``: 2 % of the depth, the room 2 cm, 1 deg,
+one prior per query and seed in ``--seeds``), one query at a time (``refine_many(batch_size=1)``) after an
+untimed one: seconds per query and per stage (``throughput.stage_clock``), renders and derivative passes per query
+and the returned poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
 ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its ``kernels/`` and ``adapters/``, as
 ``startup.py --before`` needs; this script runs on both sides, each importing its side's package, which the child
 reports and the parent checks). Each side runs in processes of its own, ``--rounds`` times, alternating, so both
@@ -81,7 +81,7 @@ def moved(a: dict, b: dict) -> tuple[int, float, float]:
 
 
 def main() -> None:
-    ap = before_parser(__doc__, ["snow_sharp", "snow"])
+    ap = before_parser(__doc__, ["snow_sharp", "snow", "lego", "room"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[7, 8], help="one prior per query and seed")
     a = ap.parse_args()
     if a.child:

@@ -71,17 +71,17 @@ def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
     return out
 
 
-def alternate(before: Path, rounds: int, measure: Callable[[Path | None], dict], label: str
-              ) -> tuple[dict[str, list[dict]], float]:
+def alternate(before: Path, rounds: int, measure: Callable[[Path | None], dict], label: str,
+              show: Callable[[dict], str] = str) -> tuple[dict[str, list[dict]], float]:
     """``measure(before)`` and ``measure(None)`` (this checkout) alternately, ``rounds`` times each: ({"before":
-    [...], "now": [...]}, the hypervisor's share of the CPU time meanwhile). Each result goes to stderr, under
-    ``label``."""
+    [...], "now": [...]}, the hypervisor's share of the CPU time meanwhile). Each result goes to stderr as
+    ``show`` writes it, under ``label``."""
     got: dict[str, list[dict]] = {"before": [], "now": []}
     with StealClock() as steal:
         for _ in range(rounds):
             for side, path in (("before", before), ("now", None)):
                 got[side].append(measure(path))
-                print(f"{label} {side}: {got[side][-1]}", file=sys.stderr, flush=True)
+                print(f"{label} {side}: {show(got[side][-1])}", file=sys.stderr, flush=True)
     return got, steal.share
 
 
@@ -97,10 +97,17 @@ def before_parser(doc: str, cases: list[str]) -> argparse.ArgumentParser:
     return ap
 
 
-def before_checkout(ap: argparse.ArgumentParser, before: Path | None) -> Path:
-    """``--before``'s checkout, resolved and checked (``checkout_env``) before any run; a usage error without it."""
-    if before is None:
+def before_args(ap: argparse.ArgumentParser, child: Callable[[argparse.Namespace], dict]
+                ) -> tuple[argparse.Namespace, Path] | None:
+    """Parse ``ap`` (``before_parser``'s). In a ``--child`` process: print ``child(args)`` as one JSON line (what
+    ``run_child`` reads) and return None. Else (args, ``--before``'s checkout resolved and checked by
+    ``checkout_env`` before any run); a usage error without ``--before``."""
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(child(a)))
+        return None
+    if a.before is None:
         ap.error("--before DIR is required (the checkout to compare with)")
-    before = before.resolve()
+    before = a.before.resolve()
     checkout_env(before)
-    return before
+    return a, before

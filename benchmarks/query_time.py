@@ -20,7 +20,6 @@ this compares two versions of the code on the same queries.
 from __future__ import annotations
 
 import importlib
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,25 +29,21 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from machine import alternate, before_checkout, before_parser, run_child  # noqa: E402
+from machine import alternate, before_args, before_parser, run_child  # noqa: E402
 
 
 def child(case: str, seeds: list[int]) -> dict:
     """The timed queries in the package this process imports (the ``--child`` side), and where it lies."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.noise import se3_noise
 
     throughput = importlib.import_module("throughput")  # after the package: it puts this checkout first on the path
     cam, scene, qs, bg = throughput.load(case)
-    unit = 1.0 if throughput.is_metric(case) else None
-    items, truths, depths = [], [], []
+    items, truths, scale = [], [], []  # scale: % of the depth (cm on the room) per scene unit
     for seed in seeds:
-        rng = np.random.default_rng(seed)
-        for name, truth, image, depth in qs:
-            prior = se3_noise(truth, 1.0, 0.02 * (unit or depth), rng)
+        for (name, truth, image, depth), prior in zip(qs, throughput.case_priors(case, qs, 2.0, 1.0, seed)):
             items.append((image, cam, prior, name))
             truths.append(truth)
-            depths.append(depth)
+            scale.append(100.0 if throughput.is_metric(case) else 100.0 / depth)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(items[0][0], cam, items[0][2])  # untimed: kernel loading, workspaces
     with throughput.stage_clock() as spent:
@@ -61,15 +56,8 @@ def child(case: str, seeds: list[int]) -> dict:
             "stages": {k: v / n for k, v in spent.items()},
             "renders": float(np.mean([r.renders for r in results])),
             "passes": float(np.mean([r.derivative_passes for r in results])),
-            "t_pct": [100 * e[0] / (unit or d) for e, d in zip(errors, depths)], "r_deg": [e[1] for e in errors],
+            "t_pct": [e[0] * k for e, k in zip(errors, scale)], "r_deg": [e[1] for e in errors],
             "poses": [r.pose.as_array().tolist() for r in results]}
-
-
-class brief(dict):
-    """A child's figures, printed as its seconds per query alone (the progress lines of ``machine.alternate``)."""
-
-    def __repr__(self) -> str:
-        return f"{self['s']:.3f} s / query"
 
 
 def moved(a: dict, b: dict) -> tuple[int, float, float]:
@@ -83,18 +71,18 @@ def moved(a: dict, b: dict) -> tuple[int, float, float]:
 def main() -> None:
     ap = before_parser(__doc__, ["snow_sharp", "snow", "lego", "room"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[7, 8], help="one prior per query and seed")
-    a = ap.parse_args()
-    if a.child:
-        print(json.dumps(child(a.child, a.seeds)))
+    parsed = before_args(ap, lambda a: child(a.child, a.seeds))
+    if parsed is None:
         return
-    before = before_checkout(ap, a.before)
+    a, before = parsed
 
     rows = ["| case | queries | s / query: before / now | speed-up | by stage, s: before / now | renders / query | "
             "derivative passes | returned median t / R: before / now | poses moved (largest: t % depth / R deg) | "
             "steal % |", "|---|---|---|---|---|---|---|---|---|---|"]
     for case in a.cases:
         args = [case, "--seeds", *map(str, a.seeds)]
-        got, steal = alternate(before, a.rounds, lambda path, args=args: brief(run_child(__file__, path, args)), case)
+        got, steal = alternate(before, a.rounds, lambda path, args=args: run_child(__file__, path, args), case,
+                               show=lambda r: f"{r['s']:.3f} s / query")
         med = {s: float(np.median([r["s"] for r in got[s]])) for s in got}
         b0, n0 = got["before"][0], got["now"][0]
         stages = sorted(set(b0["stages"]) | set(n0["stages"]), key=lambda k: -n0["stages"].get(k, 0.0))

@@ -106,12 +106,13 @@ def is_metric(case: str) -> bool:
     return case.startswith("room") or case == "7scenes_shaped"
 
 
-def case_priors(case: str, qs, pct: float, deg: float) -> list[hp.Pose]:
+def case_priors(case: str, qs, pct: float, deg: float, seed: int = 7) -> list[hp.Pose]:
     """The priors of ``case``'s queries ``qs`` (``load``'s): exactly ``pct`` % of each query's median depth (cm on
-    the room) and ``deg`` degrees in random directions; the 7-Scenes-shaped job's from ACE's and Marepo's errors."""
+    the room) and ``deg`` degrees in random directions drawn from ``seed``; the 7-Scenes-shaped job's from ACE's
+    and Marepo's errors."""
     if case == "7scenes_shaped":
         return shaped_priors(qs)
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     return [se3_noise(g, deg, pct / 100 * (1.0 if is_metric(case) else d), rng) for _, g, _, d in qs]
 
 

@@ -19,7 +19,6 @@ hypervisor took meanwhile (``benchmarks/machine.py``).
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from machine import alternate, before_checkout, before_parser, run_child  # noqa: E402
+from machine import alternate, before_args, before_parser, run_child  # noqa: E402
 
 
 def child(case: str, repeats: int) -> dict:
@@ -85,11 +84,10 @@ def child(case: str, repeats: int) -> dict:
 def main() -> None:
     ap = before_parser(__doc__, ["snow_sharp", "room", "room_x20"])
     ap.add_argument("--repeats", type=int, default=30, help="timed sorts per process and batch")
-    a = ap.parse_args()
-    if a.child:
-        print(json.dumps(child(a.child, a.repeats)))
+    parsed = before_args(ap, lambda a: child(a.child, a.repeats))
+    if parsed is None:
         return
-    before = before_checkout(ap, a.before)
+    a, before = parsed
 
     rows = ["| case | Gaussians rendered | size | visible | entries | sort ms, one pose: before / now | per pose of "
             "12: before / now | speed-up: one / 12 | same lists | steal % |",

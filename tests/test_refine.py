@@ -175,6 +175,37 @@ def test_scorer_never_renders_a_pose_twice(room):
     assert a[0] < a[1]
 
 
+def test_query_statistics_are_made_once_per_size_and_image(room):
+    """The polish's stages and the rule share the query's window statistics per size; a new image gets its own."""
+    from hgsloc_plugin.render.renderer import Renderer
+
+    gt = query_poses(1, seed=3)[0]
+    img = hp.render(room, CAM, gt)
+    prior = se3_noise(gt, 1.0, 0.02, np.random.default_rng(0))
+    ref = hp.HGSLocPlugin(room)
+    made = []
+
+    def counted(image):
+        made.append(image.shape[:2])
+        return Renderer.upload_window_query(image)
+
+    ref.renderer.upload_window_query = counted  # the whole map: under working_set_min
+    res = ref.refine(img, CAM, prior)
+    sizes = {(s.height, s.width) for s in res.polish}
+    assert res.route == "gradient" and len(sizes) >= 2
+    assert sorted(made) == sorted(sizes)  # each stage's size once, the rule's (the last stage's) not again
+
+    from hgsloc_plugin.refine.scorer import Scorer
+    sc = Scorer(ref.renderer, "cs", (0, 0, 0), 0.0)
+    other = hp.render(room, CAM, prior)
+    sc.set_query(CAM, img)
+    a = sc([prior])
+    sc.set_query(CAM, other)
+    b = sc([prior])
+    sc.set_query(CAM, img)
+    assert b[0] < a[0] and sc([prior])[0] == a[0]  # other is prior's own image: a perfect match
+
+
 def test_refine_many_records_failures(room):
     gt = query_poses(1, seed=1)[0]
     img = hp.render(room, CAM, gt)

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Camera
-from ..image import resize_image
 from ..lod import coarse_lod
 from ..pose import Pose
 from ..render import RendererLike
@@ -180,7 +179,7 @@ def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) 
     cams = list(dict.fromkeys(cams))
     pose = cand.pose
     for i, cam in enumerate(cams):
-        q = ctx.renderer.upload_window_query(resize_image(ctx.image, cam.width, cam.height))
+        q = ctx.scorer.window_query(cam, ctx.image)
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
         pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
                              allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,

@@ -16,6 +16,7 @@ class Scorer:
 
     Pixel metrics (sad, psnr, ncc, affine) run in the blending kernel against the query uploaded once per
     resolution; window metrics (cs, ssim) in a follow-up kernel on the rendered images, which stay on the device.
+    The window metrics' query statistics are made once per image and size (:meth:`window_query`).
     """
 
     def __init__(self, renderer: RendererLike, metric: str, background, mask_alpha: float):
@@ -26,6 +27,8 @@ class Scorer:
         self.camera: Camera | None = None
         self.renders = 0
         self._cache: dict[bytes, float] = {}  # costs at the current query resolution, keyed by exact pose
+        self._image: np.ndarray | None = None  # the full-size query the statistics below are of (held: no id reuse)
+        self._windows: dict[tuple[int, int], tuple[np.ndarray, object]] = {}  # (w, h) -> (resized, statistics)
 
     def set_query(self, camera: Camera, image_full: np.ndarray, renderer=None) -> None:
         """Prepare the query [H, W, 3] at ``camera``'s (scoring) size; ``renderer``: render with it from now on
@@ -34,11 +37,23 @@ class Scorer:
             self.renderer = renderer
         self.camera = camera
         self._cache = {}
-        self.query = resize_image(image_full, camera.width, camera.height)
         if METRICS[self.metric].windowed:
-            self._target = self.renderer.upload_window_query(self.query)
+            self._target = self.window_query(camera, image_full)
+            self.query = self._windows[camera.width, camera.height][0]
         else:
+            self.query = resize_image(image_full, camera.width, camera.height)
             self._target = self.renderer.upload_image(self.query)
+
+    def window_query(self, camera: Camera, image_full: np.ndarray):
+        """The window statistics (``upload_window_query``) of ``image_full`` [H, W, 3] resized to ``camera``'s size,
+        made on the first call per image and size (the polish and the rule of one query share them)."""
+        if image_full is not self._image:
+            self._image, self._windows = image_full, {}
+        key = (camera.width, camera.height)
+        if key not in self._windows:
+            small = resize_image(image_full, camera.width, camera.height)
+            self._windows[key] = (small, self.renderer.upload_window_query(small))
+        return self._windows[key][1]
 
     def remember(self, pose: Pose, cost: float, metric: str) -> None:
         """Record ``pose``'s ``cost`` under ``metric``, computed elsewhere from a plain render at this scorer's size,

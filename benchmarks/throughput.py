@@ -14,9 +14,9 @@ One process, one run. Per case, real photos first:
   7-Scenes estimates against the SfM pseudo ground truth (``../shared/data/poses/7scenes``, one drawn per query;
   metres, as 7-Scenes).
 
-Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, median of 15, on
-the renderer the refinement uses, measured in this process before and after the sequential queries, the mean of
-the two) and per pose of a 12-pose batch,
+Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, on the renderer the
+refinement uses, in this process: after each sequential query the median of 3, their mean) and per pose of a 12-pose
+batch (before and after the sequential queries, the mean of the two),
 seconds per query, queries per second, time per query in render-times (machine-independent: the refinement's
 cost in single plain renders of the same map and size), renders and derivative passes per query, the prior's and
 the returned median error (% depth or cm; degrees), queries made worse: all for one query at a time
@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import sys
 import time
 from collections import defaultdict
@@ -116,19 +117,22 @@ def case_priors(case: str, qs, pct: float, deg: float, seed: int = 7) -> list[hp
     return [se3_noise(g, deg, pct / 100 * (1.0 if is_metric(case) else d), rng) for _, g, _, d in qs]
 
 
-def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose) -> tuple[float, float]:
-    """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of 15;
-    ms per pose of a 12-pose batch)."""
+def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles: int = 15,
+              batch: bool = True) -> tuple[float, float]:
+    """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of
+    ``singles``; ms per pose of a 12-pose batch, nan without ``batch``)."""
     plan = make_plan(refiner.config, refiner.scene, cam, prior, hp.QueryPrior())
     renderer = refiner._working_set(plan)
     poses = [se3_noise(prior, 0.2, 0.01 * plan.depth, np.random.default_rng(s)) for s in range(12)]
     bg = refiner.config.background
-    renderer.render_full(plan.cam_final, poses, bg)  # warm-up
+    renderer.render_full(plan.cam_final, poses if batch else poses[:1], bg)  # warm-up (and the working set)
     single = []
-    for p in poses + poses[:3]:
+    for k in range(singles):
         t0 = time.perf_counter()
-        renderer.render_full(plan.cam_final, [p], bg)
+        renderer.render_full(plan.cam_final, [poses[k % len(poses)]], bg)
         single.append(time.perf_counter() - t0)
+    if not batch:
+        return 1000 * float(np.median(single)), math.nan
     reps = 5
     t0 = time.perf_counter()
     for _ in range(reps):
@@ -217,15 +221,21 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     priors = case_priors(case, qs, pct, deg)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
-    before = render_ms(refiner, cam, priors[0])
+    before = render_ms(refiner, cam, priors[0])[1]
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
+    results, sec, units = [], 0.0, []
     with stage_clock() as spent, kernel_launches() as seq_launches, StealClock() as steal:
-        t0 = time.perf_counter()
-        results = refiner.refine_many(items, progress=False, batch_size=1)
-        sec = (time.perf_counter() - t0) / len(items)
-    # the unit, measured on each side of the sequential queries (one measurement moved by up to 50 % on this
-    # shared machine; the mean of the two follows the state the queries ran in)
-    ms, ms_batch = np.mean([before, render_ms(refiner, cam, priors[0])], axis=0)
+        for item in items:
+            t0 = time.perf_counter()
+            results += refiner.refine_many([item], progress=False, batch_size=1)
+            sec += time.perf_counter() - t0
+            # the unit right after each query, so that it sees the machine the query ran on (one measurement on
+            # each side of the queries moved by up to 50 % on this shared machine); its launches are not counted
+            counted = list(seq_launches)
+            units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
+            seq_launches[:] = counted
+    sec /= len(items)
+    ms, ms_batch = float(np.mean(units)), float(np.mean([before, render_ms(refiner, cam, priors[0])[1]]))
     # untimed: the batched launches' workspaces (passes and line searches of several poses) grow once per process,
     # as the sequential path's did in its warm-up query (room: 88 buffers made in a first batch, 29 in the next)
     batched(refiner, items[:batch_size], batch_size, union_limit)

@@ -46,7 +46,8 @@ class Scorer:
 
     def window_query(self, camera: Camera, image_full: np.ndarray):
         """The window statistics (``upload_window_query``) of ``image_full`` [H, W, 3] resized to ``camera``'s size,
-        made on the first call per image and size (the polish and the rule of one query share them)."""
+        made on the first call per image and size (the polish and the rule of one query share them). An image is
+        the same array object: one changed in place between calls is not noticed."""
         if image_full is not self._image:
             self._image, self._windows = image_full, {}
         key = (camera.width, camera.height)

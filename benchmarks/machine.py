@@ -111,3 +111,14 @@ def before_args(ap: argparse.ArgumentParser, child: Callable[[argparse.Namespace
     before = a.before.resolve()
     checkout_env(before)
     return a, before
+
+
+def write_before_table(out: Path, title: str, script: str, setup: str, rows: list[str]) -> None:
+    """Write a ``--before`` benchmark's table to ``out`` (its notes kept, ``real_photos.write_keeping_notes``):
+    the heading ``title`` of ``benchmarks/<script>``, the command that regenerates it, the ``setup`` line, the
+    table's ``rows``."""
+    from real_photos import write_keeping_notes
+
+    write_keeping_notes(out, [f"# {title} (`benchmarks/{script}`)", "",
+                              f"Regenerate: `python benchmarks/{script} --before DIR --out {out}`",
+                              "(DIR: the checkout before the change, see the script).", "", setup, "", *rows])

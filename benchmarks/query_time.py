@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from machine import alternate, before_args, before_parser, run_child  # noqa: E402
+from machine import alternate, before_args, before_parser, run_child, write_before_table  # noqa: E402
 
 
 def child(case: str, seeds: list[int]) -> dict:
@@ -97,14 +97,9 @@ def main() -> None:
                     f"{differ} of {n0['queries']} ({dt:.3f} / {dr:.3f}) | {100 * steal:.0f} |")
         print(rows[-1], flush=True)
     if a.out:
-        from real_photos import write_keeping_notes
-
-        seeds = " ".join(map(str, a.seeds))
-        write_keeping_notes(a.out, ["# Per-query time against another checkout (`benchmarks/query_time.py`)", "",
-                                    f"Regenerate: `python benchmarks/query_time.py --before DIR --out {a.out}`",
-                                    "(DIR: the checkout before the change, see the script).", "",
-                                    f"Backend cpu; priors 2 % of the depth / 1 deg, seeds {seeds}; {a.rounds} "
-                                    "processes per side and case, alternating.", "", *rows])
+        write_before_table(a.out, "Per-query time against another checkout", "query_time.py",
+                           f"Backend cpu; priors 2 % of the depth / 1 deg, seeds {' '.join(map(str, a.seeds))}; "
+                           f"{a.rounds} processes per side and case, alternating.", rows)
 
 
 if __name__ == "__main__":

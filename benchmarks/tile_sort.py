@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from machine import alternate, before_args, before_parser, run_child  # noqa: E402
+from machine import alternate, before_args, before_parser, run_child, write_before_table  # noqa: E402
 
 
 def child(case: str, repeats: int) -> dict:
@@ -105,13 +105,9 @@ def main() -> None:
                     f"{100 * steal:.0f} |")
         print(rows[-1], flush=True)
     if a.out:
-        from real_photos import write_keeping_notes
-
-        write_keeping_notes(a.out, ["# Serial tile sort (`benchmarks/tile_sort.py`)", "",
-                                    f"Regenerate: `python benchmarks/tile_sort.py --before DIR --out {a.out}`",
-                                    "(DIR: the checkout before the change, see the script).", "",
-                                    f"Backend cpu; {a.rounds} processes per side and case, alternating; "
-                                    f"{a.repeats} timed sorts each.", "", *rows])
+        write_before_table(a.out, "Serial tile sort", "tile_sort.py",
+                           f"Backend cpu; {a.rounds} processes per side and case, alternating; {a.repeats} timed "
+                           "sorts each.", rows)
 
 
 if __name__ == "__main__":

@@ -120,7 +120,7 @@ def case_priors(case: str, qs, pct: float, deg: float, seed: int = 7) -> list[hp
 def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles: int = 15,
               batch: bool = True) -> tuple[float, float]:
     """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of
-    ``singles``; ms per pose of a 12-pose batch, nan without ``batch``)."""
+    ``singles``, nan for none; ms per pose of a 12-pose batch, nan without ``batch``)."""
     plan = make_plan(refiner.config, refiner.scene, cam, prior, hp.QueryPrior())
     renderer = refiner._working_set(plan)
     poses = [se3_noise(prior, 0.2, 0.01 * plan.depth, np.random.default_rng(s)) for s in range(12)]
@@ -131,13 +131,14 @@ def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles:
         t0 = time.perf_counter()
         renderer.render_full(plan.cam_final, [poses[k % len(poses)]], bg)
         single.append(time.perf_counter() - t0)
+    one = 1000 * float(np.median(single)) if single else math.nan
     if not batch:
-        return 1000 * float(np.median(single)), math.nan
+        return one, math.nan
     reps = 5
     t0 = time.perf_counter()
     for _ in range(reps):
         renderer.render_full(plan.cam_final, poses, bg)
-    return 1000 * float(np.median(single)), 1000 * (time.perf_counter() - t0) / (reps * len(poses))
+    return one, 1000 * (time.perf_counter() - t0) / (reps * len(poses))
 
 
 @contextlib.contextmanager
@@ -221,7 +222,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     priors = case_priors(case, qs, pct, deg)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
-    before = render_ms(refiner, cam, priors[0])[1]
+    before = render_ms(refiner, cam, priors[0], singles=0)[1]
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
     results, sec, units = [], 0.0, []
     with stage_clock() as spent, kernel_launches() as seq_launches, StealClock() as steal:
@@ -235,7 +236,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
             units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
             seq_launches[:] = counted
     sec /= len(items)
-    ms, ms_batch = float(np.mean(units)), float(np.mean([before, render_ms(refiner, cam, priors[0])[1]]))
+    ms, ms_batch = float(np.mean(units)), float(np.mean([before, render_ms(refiner, cam, priors[0], singles=0)[1]]))
     # untimed: the batched launches' workspaces (passes and line searches of several poses) grow once per process,
     # as the sequential path's did in its warm-up query (room: 88 buffers made in a first batch, 29 in the next)
     batched(refiner, items[:batch_size], batch_size, union_limit)

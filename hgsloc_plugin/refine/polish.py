@@ -168,6 +168,17 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         stats.renders += len(cands)
         return cost_from_window(renderer.window_cost(camera, [T for _, T in cands], qstats, background, mask_alpha))
 
+    def failed(motion: float) -> bool:
+        """A trial of ``motion`` pixels that did not lower the cost: more damping, the next trial at most
+        ``RETRY_SHRINK`` of it; True when that makes ``max_failures`` in a row (the polish stops)."""
+        nonlocal lam, retry_limit, failures
+        lam = min(lam * 10.0, LAMBDA_MAX)
+        retry_limit = RETRY_SHRINK * motion
+        failures += 1
+        if failures >= max_failures:
+            stats.stopped = "no decrease"
+        return failures >= max_failures
+
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
     lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
@@ -211,11 +222,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                     cands, lc = cands + more, np.concatenate([lc, score(more)])
             j = int(np.argmin(lc))
             if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
-                lam = min(lam * 10.0, LAMBDA_MAX)
-                retry_limit = RETRY_SHRINK * motion
-                failures += 1
-                if failures >= max_failures:
-                    stats.stopped = "no decrease"
+                if failed(motion):
                     break
                 continue
             longer = longer_from is None or len(cands) > 1  # else the first alone was scored: no extension
@@ -258,13 +265,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
             if negligible:
                 stats.stopped = "converged"
                 break
-        else:
-            lam = min(lam * 10.0, LAMBDA_MAX)
-            retry_limit = RETRY_SHRINK * motion
-            failures += 1
-            if failures >= max_failures:
-                stats.stopped = "no decrease"
-                break
+        elif failed(motion):
+            break
     stats.cost, stats.jtj, stats.grad = cost, H, g
     if not math.isfinite(stats.cost):
         stats.stopped = "no decrease"

@@ -5,8 +5,9 @@ Usage: python benchmarks/query_time.py --before DIR [--cases snow_sharp snow leg
 
 Per case (the maps, queries and priors of ``benchmarks/throughput.py``: 2 % of the depth, the room 2 cm, 1 deg,
 one prior per query and seed in ``--seeds``), one query at a time (``refine_many(batch_size=1)``) after an
-untimed one: seconds per query and per stage (``throughput.stage_clock``), renders and derivative passes per query
-and the returned poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
+untimed one: seconds per query and per stage (``throughput.stage_clock``), the host's milliseconds per query
+outside Taichi's C++ launches (``throughput.kernel_launches``), renders and derivative passes per query and the
+returned poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
 ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its ``kernels/`` and ``adapters/``, as
 ``startup.py --before`` needs; this script runs on both sides, each importing its side's package, which the child
 reports and the parent checks). Each side runs in processes of its own, ``--rounds`` times, alternating, so both
@@ -46,14 +47,15 @@ def child(case: str, seeds: list[int]) -> dict:
             scale.append(100.0 if throughput.is_metric(case) else 100.0 / depth)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(items[0][0], cam, items[0][2])  # untimed: kernel loading, workspaces
-    with throughput.stage_clock() as spent:
+    with throughput.stage_clock() as spent, throughput.kernel_launches() as launches:
         t0 = time.perf_counter()
         results = refiner.refine_many(items, progress=False, batch_size=1)
         sec = time.perf_counter() - t0
     n = len(items)
     errors = [r.pose.errors_to(g) for r, g in zip(results, truths)]
     return {"checkout": str(Path(hp.__file__).resolve().parents[1]), "queries": n, "s": sec / n,
-            "stages": {k: v / n for k, v in spent.items()},
+            "stages": {k: v / n for k, v in spent.items()}, "host_ms": 1000 * (sec - launches[1]) / n,
+            "launches": launches[0] / n,
             "renders": float(np.mean([r.renders for r in results])),
             "passes": float(np.mean([r.derivative_passes for r in results])),
             "t_pct": [e[0] * k for e, k in zip(errors, scale)], "r_deg": [e[1] for e in errors],
@@ -76,21 +78,23 @@ def main() -> None:
         return
     a, before = parsed
 
-    rows = ["| case | queries | s / query: before / now | speed-up | by stage, s: before / now | renders / query | "
-            "derivative passes | returned median t / R: before / now | poses moved (largest: t % depth / R deg) | "
-            "steal % |", "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| case | queries | s / query: before / now | speed-up | host ms / query: before / now | "
+            "by stage, s: before / now | renders / query | derivative passes | returned median t / R: before / now | "
+            "poses moved (largest: t % depth / R deg) | steal % |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for case in a.cases:
         args = [case, "--seeds", *map(str, a.seeds)]
         got, steal = alternate(before, a.rounds, lambda path, args=args: run_child(__file__, path, args), case,
                                show=lambda r: f"{r['s']:.3f} s / query")
         med = {s: float(np.median([r["s"] for r in got[s]])) for s in got}
+        host = {s: float(np.median([r["host_ms"] for r in got[s]])) for s in got}
         b0, n0 = got["before"][0], got["now"][0]
         stages = sorted(set(b0["stages"]) | set(n0["stages"]), key=lambda k: -n0["stages"].get(k, 0.0))
         by_stage = ", ".join(f"{k} {np.median([r['stages'].get(k, 0.0) for r in got['before']]):.2f} / "
                              f"{np.median([r['stages'].get(k, 0.0) for r in got['now']]):.2f}" for k in stages)
         differ, dt, dr = moved(b0, n0)
         rows.append(f"| {case} | {n0['queries']} | {med['before']:.3f} / {med['now']:.3f} | "
-                    f"{med['before'] / med['now']:.2f}x | {by_stage} | {b0['renders']:.1f} / {n0['renders']:.1f} | "
+                    f"{med['before'] / med['now']:.2f}x | {host['before']:.0f} / {host['now']:.0f} | {by_stage} | "
+                    f"{b0['renders']:.1f} / {n0['renders']:.1f} | "
                     f"{b0['passes']:.2f} / {n0['passes']:.2f} | "
                     f"{np.median(b0['t_pct']):.3f} / {np.median(b0['r_deg']):.3f} -> "
                     f"{np.median(n0['t_pct']):.3f} / {np.median(n0['r_deg']):.3f} | "

@@ -25,8 +25,10 @@ backend's: ``hgsloc_plugin/lockstep.py``; after an untimed batch of the first ``
 sequential queries follow an untimed one): seconds per query, speed over sequential, device calls per query
 sequential -> batched (the host-device round trips: a batched launch counts once), Taichi kernel launches per query
 sequential -> batched (uploads and read-backs included: each costs the host tens of microseconds whatever the
-device), the host's milliseconds per query outside the kernel launches, sequential -> batched (Python, NumPy,
-image loading: what one process spends per query on any device, however fast its kernels), whether every
+device), the host's milliseconds per query outside Taichi's C++ launches, sequential -> batched (Python, NumPy,
+image loading and Taichi's Python launch path: what one process spends per query on any device, however fast
+its kernels; on the CPU the Python right after a kernel runs with cold caches, so more than it would beside a
+GPU), whether every
 returned pose equals the sequential one bit for bit, and the share of the CPU time the hypervisor took during the
 sequential and the batched queries (``benchmarks/machine.py``: the render-times and the batched speed move with
 it). A second table splits each query's
@@ -173,12 +175,15 @@ def stage_clock():
 
 @contextlib.contextmanager
 def kernel_launches():
-    """Taichi kernel launches while inside: a list holding their count and the seconds spent in them (wraps
-    ``Kernel.__call__``; a ``from_numpy`` upload and a read-back are launches too)."""
-    from taichi.lang import kernel_impl
+    """Taichi kernel launches while inside: a list holding their count and the seconds spent in Taichi's C++ launch
+    (``Program.launch_kernel``: on the CPU the kernel's run, on CUDA the enqueue and any wait for a host array), so
+    that every launch counts once, through ``Kernel.__call__`` or a ``kernels/launch.py`` Launcher; a ``from_numpy``
+    upload and a read-back are launches too. The Python each launch costs before it stays outside (host time)."""
+    from taichi.lang import impl
 
     count = [0, 0.0]
-    original = kernel_impl.Kernel.__call__
+    program = type(impl.get_runtime().prog)
+    original = program.launch_kernel
 
     def counted(self, *args, **kwargs):
         count[0] += 1
@@ -188,11 +193,11 @@ def kernel_launches():
         finally:
             count[1] += time.perf_counter() - t0
 
-    kernel_impl.Kernel.__call__ = counted
+    program.launch_kernel = counted
     try:
         yield count
     finally:
-        kernel_impl.Kernel.__call__ = original
+        program.launch_kernel = original
 
 
 def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit: float | None = None

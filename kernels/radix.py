@@ -17,6 +17,8 @@ import functools
 
 import taichi as ti
 
+from .launch import launcher
+
 DIGIT_BITS = 8
 DIGITS = 1 << DIGIT_BITS
 MAX_BLOCKS = 1024  # blocks of one radix pass: its counts are [DIGITS, MAX_BLOCKS]
@@ -74,7 +76,7 @@ def exclusive_scan(vals, rows: int, cols: int, sums, out) -> None:
     n = rows * cols
     if n == 0:
         raise ValueError("nothing to scan")
-    scan_kernel()(vals, rows, cols, block_size(n), sums, out)
+    launcher(scan_kernel())(vals, rows, cols, block_size(n), sums, out)
 
 
 @ti.func
@@ -160,5 +162,5 @@ def radix_sort(keys, ids, keys_tmp, ids_tmp, m: int, bits: int, counts, offsets,
     if m == 0:
         return keys, ids
     n = passes(bits)
-    radix_sort_kernel(n)(keys, ids, keys_tmp, ids_tmp, m, *blocks(m), counts, sums, offsets)
+    launcher(radix_sort_kernel(n))(keys, ids, keys_tmp, ids_tmp, m, *blocks(m), counts, sums, offsets)
     return (keys, ids) if n % 2 == 0 else (keys_tmp, ids_tmp)

@@ -28,6 +28,7 @@ import taichi as ti
 from .config import RasterConfig
 from .footprint import in_footprint, read_mask
 from .grain import item, spread
+from .launch import launcher
 from .radix import block_size, blocks, passes, scan_rows, sort_passes
 
 RADIX_BITS = 11  # digit width of the depth sort's passes (the third pass takes the remaining 10 bits)
@@ -275,12 +276,13 @@ def bin_parallel(depth, rect, ntiles, offsets, num_poses: int, num_gaussians: in
     """
     B, n = num_poses, num_gaussians
     totals = np.empty(B, np.int64)  # a host array: the totals come back with the launch
-    offsets_kernel()(ntiles, B, n, block_size(B * n), scratch.sums, offsets, totals)
+    launcher(offsets_kernel())(ntiles, B, n, block_size(B * n), scratch.sums, offsets, totals)
     m = int(totals.sum())
     buf = lists(m)
     num_passes = passes(32 + max(1, (B * num_tiles - 1).bit_length()))
-    lists_kernel(num_passes, ellipse)(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, m, *blocks(m), buf.keys,
-                             buf.ids, buf.keys_tmp, buf.ids_tmp, scratch.counts, scratch.sums, scratch.offsets,
-                             tile_counts, tile_start)
+    launcher(lists_kernel(num_passes, ellipse))(depth, rect, ntiles, offsets, tiles_x, num_tiles, B, n, m,
+                                                *blocks(m), buf.keys, buf.ids, buf.keys_tmp, buf.ids_tmp,
+                                                scratch.counts, scratch.sums, scratch.offsets, tile_counts,
+                                                tile_start)
     buf.isect = buf.ids if num_passes % 2 == 0 else buf.ids_tmp
     return totals

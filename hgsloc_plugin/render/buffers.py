@@ -13,6 +13,7 @@ import taichi as ti
 
 from ..kernels import window_grad
 from ..kernels.footprint import RECT_SIZE
+from ..kernels.launch import launcher, upload
 from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
@@ -27,7 +28,7 @@ def read_rows(arr: ti.Ndarray, n: int) -> np.ndarray:
     """The first ``n`` rows of a device array [B, ...] as a host array [n, ...] (``kernels/readback.py``: a
     workspace's ``to_numpy`` copies all B poses)."""
     out = np.empty((n,) + tuple(arr.shape[1:]), _HOST_DTYPES[arr.dtype])
-    readback_kernel()(arr, out)
+    launcher(readback_kernel())(arr, out)
     return out
 
 
@@ -149,7 +150,7 @@ class Workspace:
         and a query's calls repeat the same intrinsics, extent, background and list offsets."""
         data = values.tobytes()
         if self.sent.get(name) != data:
-            getattr(self, name).from_numpy(values)
+            upload(getattr(self, name), values)
             self.sent[name] = data
 
     @classmethod
@@ -264,7 +265,7 @@ class Pool:
             if len(self.query_indices) >= 64:
                 self.query_indices.clear()
             nd = self.query_indices[key] = ti.ndarray(ti.i32, (max(1, index.size),))
-            nd.from_numpy(index if index.size else np.zeros(1, np.int32))
+            upload(nd, index if index.size else np.zeros(1, np.int32))
         return nd
 
     def grown(self, cur, batch: int, n: int):

@@ -13,6 +13,7 @@ import taichi as ti
 from ..camera import Camera
 from ..costs import cost_from_window
 from ..kernels import window_grad
+from ..kernels.launch import launcher
 from ..kernels.pose_grad import NXI, derivative_images_kernel
 from ..pose import Pose
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
@@ -44,7 +45,7 @@ def derivative_images(r, cams: list[Camera], part: list[Pose], background) -> De
     # each pixel may skip the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
     tx, ty = ws.tiles
     masks = r.pool.pixel_masks() if r.grad_masks else r.pool.placeholder(ti.u64)
-    derivative_images_kernel(r.config, r.blend_mode == "splat", r.grad_masks)(
+    launcher(derivative_images_kernel(r.config, r.blend_mode == "splat", r.grad_masks))(
         gs.means, gs.cov3d, ws.viewmats, ws.cams, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
         rec.packed, ws.tile_start, r.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb, g.alpha,
         g.drgb)
@@ -78,8 +79,8 @@ def pose_gradient(r, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.
             g.window = WindowGradBuffers.allocate(*g.alpha.shape)
         w = g.window
         out = np.empty((n, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
-        window_grad.cs_system_kernel()(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h, w.wts,
-                                       w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
+        launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h,
+                                                 w.wts, w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
         sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
         scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
         hess = np.zeros((n, NXI, NXI))

@@ -18,6 +18,7 @@ from ..camera import Camera, pose_cameras, size_camera
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
 from ..kernels.footprint import uses_ellipse_tiles
+from ..kernels.launch import launcher
 from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
@@ -55,12 +56,13 @@ class Renderer:
         self.pool = Pool()
         self.sort_mode = sort_mode(self.config.sort, current_arch())
         self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, current_arch())  # RasterConfig.tile_test
-        self._project = projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse)
-        self._sort = tile_sort_kernel(self.config, ellipse)
+        # every launch through a Launcher (kernels/launch.py): Taichi's per-call checks once per signature
+        self._project = launcher(projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse))
+        self._sort = launcher(tile_sort_kernel(self.config, ellipse))
         auto_blend = "pixel" if current_arch() == "cuda" else "splat"
         self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
-        self._blend_cost = splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config)
-        self._reduce = reduce_kernel()
+        self._blend_cost = launcher(splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config))
+        self._reduce = launcher(reduce_kernel())
         self.grad_masks = uses_masks(self.config, current_arch(), mode == "splat")  # the derivative pass's masks
         self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
         self._root_index: np.ndarray | None = None  # resident indices there (increasing)
@@ -119,10 +121,11 @@ class Renderer:
         g = self.gaussians
         rows, fac = cull.planes(cameras, self.config)
         keep = ti.ndarray(ti.i32, (self.n,))
-        cull.keep_kernel(self.config)(g.means, g.smax, g.opacities, upload(pose.matrix34().astype(np.float64), ti.f64),
-                                      upload(np.array(rows, np.float64), ti.f64),
-                                      upload(np.array(fac, np.float64), ti.f64), float(max_shift),
-                                      float(np.radians(max_rotation_deg)), keep)
+        launcher(cull.keep_kernel(self.config))(g.means, g.smax, g.opacities,
+                                                upload(pose.matrix34().astype(np.float64), ti.f64),
+                                                upload(np.array(rows, np.float64), ti.f64),
+                                                upload(np.array(fac, np.float64), ti.f64), float(max_shift),
+                                                float(np.radians(max_rotation_deg)), keep)
         return self._selection(np.flatnonzero(keep.to_numpy()).astype(np.int32))
 
     def _selection(self, idx: np.ndarray) -> Renderer:
@@ -141,7 +144,7 @@ class Renderer:
         for name in DeviceGaussians.FIELDS:
             src = getattr(self.gaussians, name)
             dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
-            cull.gather_kernel(len(src.shape))(src, nd_idx, dst)
+            launcher(cull.gather_kernel(len(src.shape)))(src, nd_idx, dst)
             gathered[name] = dst
         other = self.with_gaussians(DeviceGaussians(**gathered, source_index=self.source_index[idx]))
         other._root = self.root
@@ -278,7 +281,7 @@ class Renderer:
         for cams, part in self._chunks(camera, poses):
             ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
-            image_kernel(self.config, self.blend_mode == "splat")(*head, im.rgb, im.alpha, im.dimg)
+            launcher(image_kernel(self.config, self.blend_mode == "splat"))(*head, im.rgb, im.alpha, im.dimg)
             n = len(part)
             rgbs.append(read_rows(im.rgb, n))
             alphas.append(read_rows(im.alpha, n))
@@ -300,7 +303,7 @@ class Renderer:
         q = Renderer.upload_image(image)
         H, W = q.shape[:2]
         out = ti.ndarray(ti.f32, (1, H, W, 3, window.NQ))
-        window.query_stats_kernel()(q, 0, out)
+        launcher(window.query_stats_kernel())(q, 0, out)
         return out
 
     @staticmethod
@@ -311,7 +314,7 @@ class Renderer:
         if len(shapes) != 1 or any(q.shape[0] != 1 for q in stats):
             raise ValueError(f"stacked queries must be single queries of one size, got {[q.shape for q in stats]}")
         out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop())
-        copy = window.copy_query_kernel()
+        copy = launcher(window.copy_query_kernel())
         for k, q in enumerate(stats):
             copy(q, 0, out, k)
         return out
@@ -335,7 +338,7 @@ class Renderer:
             if ws.window is None:
                 ws.window = WindowBuffers.allocate(ws.batch, cams[0].height, cams[0].width)
             sums = np.empty((len(part), 2), np.float64)
-            window.window_cost_kernel(self.config, self.blend_mode == "splat", bool(luminance))(
+            launcher(window.window_cost_kernel(self.config, self.blend_mode == "splat", bool(luminance)))(
                 *head, im.rgb, im.alpha, im.dimg, qstats, qi, float(mask_alpha), ws.window.h, ws.window.rows, sums)
             out.append(sums)
         return np.concatenate(out)

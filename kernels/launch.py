@@ -1,0 +1,135 @@
+"""Kernel launches with less host time: Taichi's checks made once per argument signature, not at every call.
+
+Taichi 1.7 spends 0.2-0.8 ms of Python on each launch of the renderer's kernels (13-20 arguments; the kernels
+themselves run 0.6-1.3 ms a render on a GPU): it derives every argument's features to look the compiled kernel
+up, and sets each argument through a chain of type tests. A query launches about 90 of them, so on a GPU the
+host, not the device, set the pace (``benchmarks/throughput.md``, host ms per query).
+
+:func:`launcher` wraps a ``@ti.kernel``. The first call with a new argument signature (each argument's type,
+and for arrays their dtype, rank and contiguity) goes through Taichi's own path, which compiles and checks
+everything; the wrapper then keeps the compiled kernel and one setter per argument, and the next calls of that
+signature only set the arguments and launch. The kernels, their arguments and so every result are those of
+Taichi's path. A signature the fast path does not cover (template or matrix arguments, return values, prints,
+autodiff, a non-contiguous host array) keeps Taichi's path; so does a Taichi reset (a new program).
+Written against Taichi 1.7's internals (``kernel_impl.Kernel``), the version the package pins;
+``HGSLOC_FAST_LAUNCH=0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import numpy as np
+import taichi as ti
+from taichi.lang import impl
+from taichi.lang.enums import AutodiffMode
+from taichi.lang.util import cook_dtype
+from taichi.types import ndarray_type, primitive_types
+from taichi.types.utils import is_signed
+
+_ENABLED = os.environ.get("HGSLOC_FAST_LAUNCH", "1") != "0"
+
+
+def _signature(value) -> tuple:
+    """What Taichi's compiled-kernel lookup and argument checks depend on, for one argument."""
+    if isinstance(value, ti.Ndarray):
+        return (ti.Ndarray, value.dtype, len(value.shape), value.grad is None)
+    if isinstance(value, np.ndarray):
+        return (np.ndarray, value.dtype.str, value.ndim, value.flags.c_contiguous)
+    return (type(value),)
+
+
+def _set_float(ctx, index, value):
+    ctx.set_arg_float(index, float(value))
+
+
+def _set_int(ctx, index, value):
+    ctx.set_arg_int(index, int(value))
+
+
+def _set_uint(ctx, index, value):
+    ctx.set_arg_uint(index, int(value))
+
+
+def _set_ndarray(ctx, index, value):
+    ctx.set_arg_ndarray(index, value.arr)
+
+
+def _set_host_array(ctx, index, value):
+    ctx.set_arg_external_array_with_shape(index, int(value.ctypes.data), value.nbytes, value.shape, 0)
+
+
+def _setter(annotation, value):
+    """How one argument is set on a launch context, or None when only Taichi's path handles it."""
+    if id(annotation) in primitive_types.real_type_ids:
+        return _set_float
+    if id(annotation) in primitive_types.integer_type_ids:
+        return _set_int if is_signed(cook_dtype(annotation)) else _set_uint
+    if isinstance(annotation, ndarray_type.NdarrayType):
+        if annotation.dtype is not None and id(annotation.dtype) not in primitive_types.type_ids:
+            return None  # vector or matrix elements: Taichi strips their dimensions from the shape
+        if isinstance(value, ti.Ndarray) and value.grad is None:
+            return _set_ndarray
+        if isinstance(value, np.ndarray) and value.flags.c_contiguous:
+            return _set_host_array
+    return None
+
+
+class Launcher:
+    """A ``@ti.kernel`` called with its arguments as Taichi's ``kernel(*args)``, faster from the second call of an
+    argument signature (module docstring)."""
+
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self.primal = getattr(kernel, "_primal", None)
+        self.plans: dict[tuple, tuple | None] = {}
+
+    def __call__(self, *args):
+        sig = tuple(_signature(a) for a in args)
+        plan = self.plans.get(sig, False)
+        prog = impl.get_runtime().prog
+        if plan and plan[0] is prog and impl.get_runtime().target_tape is None:
+            _, t_kernel, data, setters = plan
+            ctx = t_kernel.make_launch_context()
+            for i, (set_arg, value) in enumerate(zip(setters, args)):
+                set_arg(ctx, (i,), value)
+            prog.launch_kernel(data, ctx)
+            return None
+        out = self.kernel(*args)
+        if plan is False or (plan is not None and plan[0] is not prog):
+            self.plans[sig] = self._plan(args)
+        return out
+
+    def _plan(self, args) -> tuple | None:
+        """(program, compiled kernel, its launch data, setters) for ``args``' signature, or None."""
+        k = self.primal
+        if not _ENABLED or k is None or k.return_type is not None or getattr(k, "has_print", True):
+            return None
+        if k.autodiff_mode != AutodiffMode.NONE or len(k.arguments) != len(args):
+            return None
+        setters = [_setter(a.annotation, v) for a, v in zip(k.arguments, args)]
+        if any(s is None for s in setters):
+            return None
+        key = k.ensure_compiled(*args)
+        t_kernel = k.compiled_kernels[key]
+        prog = impl.get_runtime().prog
+        data = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+        return prog, t_kernel, data, setters
+
+
+@functools.cache
+def launcher(kernel) -> Launcher:
+    """The :class:`Launcher` of ``kernel`` (one per kernel object, so its plans are shared by every caller)."""
+    return Launcher(kernel)
+
+
+def upload(dst: ti.Ndarray, values: np.ndarray) -> None:
+    """``dst.from_numpy(values)`` through a :class:`Launcher` of Taichi's own copy kernel (same shape and
+    element type required, as there)."""
+    from taichi._kernels import ext_arr_to_ndarray
+
+    if tuple(dst.shape) != tuple(values.shape):
+        raise ValueError(f"shape mismatch: {tuple(dst.shape)} expected, {tuple(values.shape)} given")
+    launcher(ext_arr_to_ndarray)(np.ascontiguousarray(values), dst)
+    impl.get_runtime().sync()

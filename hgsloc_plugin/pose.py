@@ -9,8 +9,14 @@ import numpy as np
 
 
 def qvec_to_rotmat(q) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) [4] -> rotation matrix [3, 3] (Hamilton convention)."""
-    return qvecs_to_rotmats(np.array([[float(v) for v in q]], dtype=np.float64))[0]
+    """Unit quaternion (w, x, y, z) [4] -> rotation matrix [3, 3] float64 (Hamilton convention); the numbers of
+    :func:`qvecs_to_rotmats`, bit for bit (the same float64 operations, on Python floats: a pose makes one)."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ], dtype=np.float64)
 
 
 def qvecs_to_rotmats(q: np.ndarray) -> np.ndarray:

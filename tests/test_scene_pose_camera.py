@@ -169,6 +169,16 @@ def test_pose_rotation_is_computed_once_and_handed_out_as_a_copy():
     assert q == p and np.array_equal(q.R, p.R) and np.array_equal((q @ p.inv()).as_array(), (p @ p.inv()).as_array())
 
 
+def test_one_quaternion_rotates_as_the_batch():
+    from hgsloc_plugin.pose import qvec_to_rotmat, qvecs_to_rotmats
+
+    q = np.random.default_rng(3).normal(size=(200, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    batch = qvecs_to_rotmats(q)
+    assert all(np.array_equal(qvec_to_rotmat(qi), Ri) for qi, Ri in zip(q, batch))  # bit for bit
+    np.testing.assert_allclose(batch @ batch.transpose(0, 2, 1), np.broadcast_to(np.eye(3), batch.shape), atol=1e-12)
+
+
 def test_rotation_angle_small_and_exact():
     for deg in (1e-4, 0.01, 1.0, 90.0, 179.0):
         R = so3_exp(np.array([0.3, -0.4, 0.5]) / np.linalg.norm([0.3, -0.4, 0.5]) * math.radians(deg))

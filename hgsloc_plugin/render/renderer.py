@@ -56,7 +56,6 @@ class Renderer:
         self.pool = Pool()
         self.sort_mode = sort_mode(self.config.sort, current_arch())
         self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, current_arch())  # RasterConfig.tile_test
-        # every launch through a Launcher (kernels/launch.py): Taichi's per-call checks once per signature
         self._project = launcher(projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse))
         self._sort = launcher(tile_sort_kernel(self.config, ellipse))
         auto_blend = "pixel" if current_arch() == "cuda" else "splat"
@@ -121,10 +120,8 @@ class Renderer:
         g = self.gaussians
         rows, fac = cull.planes(cameras, self.config)
         keep = ti.ndarray(ti.i32, (self.n,))
-        launcher(cull.keep_kernel(self.config))(g.means, g.smax, g.opacities,
-                                                upload(pose.matrix34().astype(np.float64), ti.f64),
-                                                upload(np.array(rows, np.float64), ti.f64),
-                                                upload(np.array(fac, np.float64), ti.f64), float(max_shift),
+        planes = [upload(np.asarray(a, np.float64), ti.f64) for a in (pose.matrix34(), rows, fac)]
+        launcher(cull.keep_kernel(self.config))(g.means, g.smax, g.opacities, *planes, float(max_shift),
                                                 float(np.radians(max_rotation_deg)), keep)
         return self._selection(np.flatnonzero(keep.to_numpy()).astype(np.int32))
 

@@ -2,7 +2,7 @@
 # The checks that need a GPU, in one run, most important first, within a time budget (a lent device gives a
 # command 10 minutes):
 #   1. the kernel tests on CUDA (against the PyTorch reference and the serial sort; the parallel sort is Taichi's
-#      radix sort);
+#      radix sort; kernels/launch.py's fast path against Taichi's own launches);
 #   2. the throughput table on CUDA (issue 33's goals: queries per second and render-times per query, sequential
 #      and in lockstep batches; the 7-Scenes-shaped job with 64 queries so that a batch of 32 fills);
 #   3. the 7-Scenes-shaped job in processes sharing the GPU (plain processes, and Ray workers where Ray is
@@ -54,7 +54,7 @@ step() {  # step NAME COMMAND...: run COMMAND with the budget's remaining time, 
 cuda_tests() {
   HGSLOC_ARCH=cuda "$PY" -m pytest -q -p no:cacheprovider tests/test_tile_sort.py tests/test_render.py \
       tests/test_pose_grad.py tests/test_working_set.py tests/test_lod.py tests/test_lockstep.py \
-      tests/test_layout.py 2>&1 | tee "$out/tests_cuda.log"
+      tests/test_layout.py tests/test_launch.py 2>&1 | tee "$out/tests_cuda.log"
   grep -q " passed" "$out/tests_cuda.log" && ! grep -qE " (failed|error)" "$out/tests_cuda.log"
 }
 

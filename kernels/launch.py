@@ -3,7 +3,7 @@
 Taichi 1.7 spends 0.2-0.8 ms of Python on each launch of the renderer's kernels (13-20 arguments; the kernels
 themselves run 0.6-1.3 ms a render on a GPU): it derives every argument's features to look the compiled kernel
 up, and sets each argument through a chain of type tests. A query launches about 90 of them, so on a GPU the
-host, not the device, set the pace (``benchmarks/throughput.md``, host ms per query).
+host, not the device, sets the pace (``benchmarks/throughput.md``, host ms per query).
 
 :func:`launcher` wraps a ``@ti.kernel``. The first call with a new argument signature (each argument's type,
 and for arrays their dtype, rank and contiguity) goes through Taichi's own path, which compiles and checks
@@ -125,8 +125,8 @@ def launcher(kernel) -> Launcher:
 
 
 def upload(dst: ti.Ndarray, values: np.ndarray) -> None:
-    """``dst.from_numpy(values)`` through a :class:`Launcher` of Taichi's own copy kernel (same shape and
-    element type required, as there)."""
+    """``dst.from_numpy(values)`` through a :class:`Launcher` of Taichi's own copy kernel: the same shape required,
+    the values cast to ``dst``'s element type, as there."""
     from taichi._kernels import ext_arr_to_ndarray
 
     if tuple(dst.shape) != tuple(values.shape):

@@ -123,7 +123,7 @@ class Renderer:
         planes = [upload(np.asarray(a, np.float64), ti.f64) for a in (pose.matrix34(), rows, fac)]
         launcher(cull.keep_kernel(self.config))(g.means, g.smax, g.opacities, *planes, float(max_shift),
                                                 float(np.radians(max_rotation_deg)), keep)
-        return self._selection(np.flatnonzero(keep.to_numpy()).astype(np.int32))
+        return self._selection(np.flatnonzero(read_rows(keep, self.n)).astype(np.int32))
 
     def _selection(self, idx: np.ndarray) -> Renderer:
         """A renderer of the resident Gaussians ``idx`` [M] (increasing), or this one when they are nearly all

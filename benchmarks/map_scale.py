@@ -27,7 +27,8 @@ renders, derivative passes and seconds per query, accuracy before / after (media
 
 ``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at
 the final scoring size, one pose, median of 15): projection, tile sort, blending, with the Gaussians rendered
-(the working set) and those visible (touching a tile).
+(the working set) and those visible (touching a tile); and one working-set selection around that prior (the
+default region, whatever the map's size), which a query makes a few times.
 """
 
 from __future__ import annotations
@@ -139,12 +140,14 @@ def stages(k: int) -> str:
             times.append(time.perf_counter() - t0)
         return 1000 * float(np.median(times))
 
+    wset = hp.HGSLocPlugin(scene, hp.RefineConfig(working_set_min=0))._working_set(plan)
+    select = ms(lambda: wset.full.working_set(wset.cameras, prior, wset.radius_shift, wset.radius_rotation_deg))
     full = ms(lambda: r.render_full(cam, [prior], bg))
     geometry = ms(lambda: r._geometry(cam, [prior], ws, bg))
     proj = ms(project)
     visible = int((rec.ntiles.to_numpy()[0] > 0).sum())
     return (f"| {scene.num_gaussians:,} | {r.n:,} | {visible:,} | {full:.1f} | {proj:.1f} | {geometry - proj:.1f} | "
-            f"{full - geometry:.1f} |")
+            f"{full - geometry:.1f} | {select:.1f} |")
 
 
 def main() -> None:
@@ -160,7 +163,7 @@ def main() -> None:
     a = ap.parse_args()
     if a.stages:
         print("| Gaussians | rendered (working set) | visible | render (ms) | projection | tile sort | blending "
-              "(and read-back) |\n|---|---|---|---|---|---|---|", flush=True)
+              "(and read-back) | selection (ms) |\n|---|---|---|---|---|---|---|---|", flush=True)
         for k in a.k:
             print(stages(k), flush=True)
         return

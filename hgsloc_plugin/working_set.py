@@ -9,7 +9,7 @@ and, when a batch has a pose outside that region, selects again around that batc
 conservative test of ``kernels/cull.py`` and keeps the resident order, so every image and cost equals the
 whole map's bit for bit, whichever selection rendered it (a batch that does not fit one region is rendered
 from the whole map). The workspaces are the parent renderer's (``render.buffers.Pool``), so a re-selection costs
-one pass over the map's centres and a gather, no allocation.
+one pass over the map's centres and a gather into new arrays of the selected Gaussians.
 """
 
 from __future__ import annotations

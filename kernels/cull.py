@@ -20,8 +20,10 @@ bounds the projection kernel itself obeys:
   angle between ``n`` and ``q``.
 
 A Gaussian is dropped when that upper bound fails one of the five planes (no pose of the region sees it); it is
-kept otherwise (and, in the gsplat radius mode, its opacity
-reaches ``alpha_min``, as the projection requires). Kept Gaussians keep their order, so depth ties resolve as
+kept otherwise (and, in the gsplat radius mode, its opacity reaches ``alpha_min``, as the projection requires).
+Since ``cos(max(0, phi - max_rotation)) >= cos(phi)``, the bound is at least ``n.q + max_shift``: a plane this
+passes by a margin far above float64 rounding is passed without the angles, the others get the bound itself
+(the same flags). Kept Gaussians keep their order, so depth ties resolve as
 in the full map and images rendered from the working set equal those from the full map bit for bit.
 The reference is the projection kernel itself: ``tests/test_working_set.py`` checks that every Gaussian it
 keeps for poses on the region's edge is in the working set.
@@ -37,6 +39,8 @@ from .config import RasterConfig
 
 NPLANES = 5  # right, left, bottom, top, near
 EXTENT_SLACK = 1.01  # float32 rounding margin on both terms of the bound
+#: relative margin of the test without angles: far above the float64 rounding of the angles' path
+QUICK_MARGIN = 1e-6
 
 
 def jacobian_limits(camera) -> tuple[float, float]:
@@ -96,13 +100,19 @@ def keep_kernel(config: RasterConfig):
                 d = q.norm()
                 s = ti.cast(smax[i], ti.f64)
                 for k in ti.static(range(NPLANES)):
-                    n = ti.Vector([planes[k, 0], planes[k, 1], planes[k, 2]])
-                    c = ti.cast(1.0, ti.f64)
-                    if d > 0.0:
-                        c = ti.min(1.0, ti.max(-1.0, n.dot(q) / d))
-                    ang = ti.max(0.0, ti.acos(c) - max_rotation)
-                    if d * ti.cos(ang) + max_shift < -(a_factor[k] * s + planes[k, 3]):
-                        ok = 0
+                    if ok:
+                        n = ti.Vector([planes[k, 0], planes[k, 1], planes[k, 2]])
+                        nq = n.dot(q)
+                        rhs = -(a_factor[k] * s + planes[k, 3])
+                        # d cos(max(0, phi - max_rotation)) >= d cos(phi) = n.q: a centre this far inside the
+                        # plane passes without the angles (the margin covers their rounding), the rest are tested
+                        if nq + max_shift < rhs + QUICK_MARGIN * (d + max_shift + ti.abs(rhs)):
+                            c = ti.cast(1.0, ti.f64)
+                            if d > 0.0:
+                                c = ti.min(1.0, ti.max(-1.0, nq / d))
+                            ang = ti.max(0.0, ti.acos(c) - max_rotation)
+                            if d * ti.cos(ang) + max_shift < rhs:
+                                ok = 0
             out[i] = ok
 
     return keep
@@ -124,16 +134,21 @@ def gather_kernel(ndim: int):
         @ti.kernel
         def gather2(src: ti.types.ndarray(dtype=ti.f32, ndim=2), idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
                     dst: ti.types.ndarray(dtype=ti.f32, ndim=2)):
-            for j, a in ti.ndrange(idx.shape[0], src.shape[1]):
-                dst[j, a] = src[idx[j], a]
+            for j in range(idx.shape[0]):  # one task per row: its inner loop a plain copy
+                s = idx[j]
+                for a in range(src.shape[1]):
+                    dst[j, a] = src[s, a]
 
         return gather2
     if ndim == 3:
         @ti.kernel
         def gather3(src: ti.types.ndarray(dtype=ti.f32, ndim=3), idx: ti.types.ndarray(dtype=ti.i32, ndim=1),
                     dst: ti.types.ndarray(dtype=ti.f32, ndim=3)):
-            for j, a, c in ti.ndrange(idx.shape[0], src.shape[1], src.shape[2]):
-                dst[j, a, c] = src[idx[j], a, c]
+            for j in range(idx.shape[0]):
+                s = idx[j]
+                for a in range(src.shape[1]):
+                    for c in range(src.shape[2]):
+                        dst[j, a, c] = src[s, a, c]
 
         return gather3
     raise ValueError(f"gather_kernel: ndim must be 1, 2 or 3, got {ndim}")

@@ -233,3 +233,47 @@ def test_image_sizes_share_one_set_of_per_gaussian_buffers():
     assert set(pool.workspaces) == {(w, h, t) for w, h in sizes for t in (cfg.tile_size, cfg.grad_tile_size)}
     assert set(pool.derivative_workspaces) == sizes
     assert pool.records.batch >= 18  # one set of per-Gaussian records, grown for the largest batch
+
+
+def reference_keep(means, smax, opacities, viewmat, planes, fac, max_shift, max_rotation, alpha_min=None):
+    """NumPy float64 twin of ``kernels/cull.py::keep_kernel`` (every plane through the angles): keep flags [N]."""
+    q = means.astype(np.float64) @ viewmat[:, :3].T + viewmat[:, 3]
+    d = np.linalg.norm(q, axis=1)
+    s = smax.astype(np.float64)
+    ok = np.ones(len(means), bool) if alpha_min is None else opacities >= alpha_min
+    for n, f in zip(np.asarray(planes, np.float64), fac):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = np.where(d > 0, np.clip(q @ n[:3] / d, -1.0, 1.0), 1.0)
+        ang = np.maximum(0.0, np.arccos(c) - max_rotation)
+        ok &= ~(d * np.cos(ang) + max_shift < -(f * s + n[3]))
+    return ok
+
+
+@pytest.mark.parametrize("radius_mode", ["gsplat", "inria"])
+def test_keep_kernel_matches_the_bound_through_the_angles(radius_mode):
+    """The keep kernel, which passes most planes on ``n.q + max_shift`` alone, keeps exactly the Gaussians the
+    bound through the angles keeps (float64 NumPy twin), for small and large regions and both radius modes."""
+    import taichi as ti
+
+    from hgsloc_plugin.kernels import cull
+    from hgsloc_plugin.render.buffers import read_rows
+    from hgsloc_plugin.render.prepare import upload
+
+    scene = densify(make_room_scene(), 2)
+    full = get_renderer(scene, hp.RasterConfig(radius_mode=radius_mode))
+    g = full.gaussians
+    means, smax, opac = g.means.to_numpy(), g.smax.to_numpy(), g.opacities.to_numpy()
+    cams = [hp.Camera.from_fov(320, 240, 65.0).with_max_side(s) for s in (200, 100)]
+    rows, fac = cull.planes(cams, full.config)
+    alpha_min = full.config.alpha_min if radius_mode == "gsplat" else None
+    kept = []
+    for k, T in enumerate(query_poses(3, seed=6)):
+        for shift, rot in ((0.005, 0.2), (0.05, 3.0), (0.5, 30.0)):
+            keep = ti.ndarray(ti.i32, (full.n,))
+            args = [upload(np.asarray(a, np.float64), ti.f64) for a in (T.matrix34(), rows, fac)]
+            cull.keep_kernel(full.config)(g.means, g.smax, g.opacities, *args, shift, np.radians(rot), keep)
+            got = read_rows(keep, full.n).astype(bool)
+            want = reference_keep(means, smax, opac, T.matrix34(), rows, fac, shift, np.radians(rot), alpha_min)
+            assert np.array_equal(got, want), f"{np.sum(got != want)} flags differ (pose {k}, {shift}, {rot})"
+            kept.append(got.mean())
+    assert min(kept) < 0.25 and max(kept) > 0.4, kept  # regions that keep a sixth and half of the room

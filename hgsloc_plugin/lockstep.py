@@ -4,8 +4,9 @@ Each query of a batch runs in a worker thread whose refiner renders through a :c
 device call is handed to the thread that runs the batch, and the worker waits for its answer. When every live
 query waits, that thread serves one round: the calls that cannot be batched (query uploads and the like) if any
 wait, else the largest group of ``window_cost`` or ``pose_gradient`` calls of one map, image size and settings,
-in one launch (their query statistics stacked on the device, each pose scored against its own query:
-``Renderer.stack_window_queries``, and rendered with its own query's camera: intrinsics may differ); the queries
+in one launch (each pose scored against its own query, whose statistics sit in a slot of one device array per
+image size, copied there once: ``Renderer.stack_window_queries``; and rendered with its own query's camera:
+intrinsics may differ); the queries
 served resume, the others wait for a later round, so queries that fell out of step meet again at a common call.
 So:
 
@@ -32,6 +33,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
+import taichi as ti
 
 from .backend import default_union_limit
 from .camera import Camera
@@ -39,6 +41,8 @@ from .render.renderer import Renderer
 
 #: unions of working sets a :class:`Lockstep` keeps for the next rounds (each a copy of its Gaussians on the device)
 UNIONS_KEPT = 4
+#: query slots per image size a :class:`Lockstep` keeps on the device, per query of its batch
+SLOTS_PER_QUERY = 2
 #: the batched calls, and how each one's keyword values are read from its arguments
 _BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
 
@@ -83,7 +87,7 @@ class Lockstep:
         self._unions: dict[tuple, tuple[list, Renderer]] = {}
         self._cond = threading.Condition()
         self._cancelled = False
-        self._stacks: dict[tuple, tuple[list, object]] = {}
+        self._slots: dict[tuple, _QuerySlots] = {}  # per image size
         self.launches = 0  # device calls served (a batched launch counts once)
         self.requests = 0  # device calls the queries made
         self.union_launches = 0  # launches rendered from the union of several working sets
@@ -227,15 +231,17 @@ class Lockstep:
         _, name, _, _ = group[0].request
         calls = [s.arguments for s in group]
         stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
-        slot_of = {id(q): k for k, q in enumerate(stats)}
+        shape = tuple(stats[0].shape[1:])
+        slots = self._slots.setdefault(shape, _QuerySlots(SLOTS_PER_QUERY * self.batch_size, shape))
         poses = [p for c in calls for p in c["poses"]]
-        index = np.concatenate([np.full(len(c["poses"]), slot_of[id(c["qstats"])], np.int32) for c in calls])
         args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
         if any(c["camera"] != args["camera"] for c in calls):  # queries of other intrinsics: a camera per pose
             args["camera"] = [c["camera"] for c in calls for _ in c["poses"]]
         self.union_launches += len({id(s.request[0]) for s in group}) > 1
         try:
-            out = getattr(target, name)(poses=poses, qstats=self._stacked(target, stats), query_index=index, **args)
+            stacked, slot_of = slots.place(target, stats)
+            index = np.concatenate([np.full(len(c["poses"]), slot_of[id(c["qstats"])], np.int32) for c in calls])
+            out = getattr(target, name)(poses=poses, qstats=stacked, query_index=index, **args)
         except Exception:  # noqa: BLE001 - each call then gets its own answer (and its own error)
             for s in group:
                 s.reply = _invoke(*s.request)
@@ -246,10 +252,39 @@ class Lockstep:
         for s, part in zip(group, parts):
             s.reply = (True, part)
 
-    def _stacked(self, target, stats: list):
-        """The queries' statistics stacked in one device array (the last few stacks are kept: a lockstep batch
-        meets the same groups step after step)."""
-        return _kept_by_identity(self._stacks, stats, 16, lambda: target.stack_window_queries(stats))
+
+
+class _QuerySlots:
+    """One image size's query statistics in the slots of one device array (``capacity`` of them, made on first
+    use): each query's are copied in once and keep their slot while they are used, the least recently used
+    giving way to new ones, so a launch over any group of live queries needs no new array and no copy of those
+    already in place."""
+
+    def __init__(self, capacity: int, shape: tuple[int, ...]):
+        self.capacity = capacity
+        self.shape = shape  # one query's statistics: (H, W, 3, NQ)
+        self.array = None
+        self.held: dict[int, tuple[object, int]] = {}  # id(statistics) -> (statistics, slot), least recent first
+
+    def place(self, target: Renderer, stats: list) -> tuple[object, dict[int, int]]:
+        """(the device array [capacity, H, W, 3, NQ], {id(statistics): slot}) with every one of ``stats`` (at most
+        ``capacity``, of this size) in its slot."""
+        if self.array is None:
+            self.array = ti.ndarray(ti.f32, (self.capacity,) + self.shape)
+        wanted = {id(q) for q in stats}
+        slot_of = {}
+        for q in stats:
+            held = self.held.pop(id(q), None)
+            if held is None or held[0] is not q:
+                used = {k for _, k in self.held.values()}
+                free = next((k for k in range(self.capacity) if k not in used), None)
+                if free is None:  # the least recently used of the others gives way
+                    free = self.held.pop(next(i for i in self.held if i not in wanted))[1]
+                target.stack_window_queries([q], out=self.array, slots=[free])
+                held = (q, free)
+            self.held[id(q)] = held  # most recent last
+            slot_of[id(q)] = held[1]
+        return self.array, slot_of
 
 
 def _kept_by_identity(cache: dict, objects: list, size: int, make: Callable[[], object]):

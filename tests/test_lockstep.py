@@ -68,6 +68,41 @@ def test_stacked_queries_score_each_pose_as_its_own_launch():
         r.window_cost(cam, flat, stacked, query_index=index[:3])
 
 
+def test_query_slots_copy_each_query_once_and_recycle_the_least_recent():
+    """A lockstep's query slots (one device array per image size): each query's statistics are copied into a slot
+    once and stay there while used; when the slots are full the least recently used query not in the group gives
+    way; a launch against the slots scores every pose as a launch of its own query does, bit for bit."""
+    from hgsloc_plugin.lockstep import _QuerySlots
+
+    scene, cam, images, poses = _stack_case()
+    r = get_renderer(scene)
+    rng = np.random.default_rng(5)
+    images = list(images) + [np.clip(im + rng.normal(scale=0.05, size=im.shape), 0, 1).astype(np.float32)
+                             for im in images]
+    stats = [r.upload_window_query(im) for im in images]  # six queries
+    slots = _QuerySlots(4, tuple(stats[0].shape[1:]))
+    copies = []
+    original = r.stack_window_queries
+    r.stack_window_queries = lambda qs, out=None, slots=None: copies.append(len(qs)) or original(qs, out, slots)
+    try:
+        array, first = slots.place(r, stats[:3])
+        again, second = slots.place(r, [stats[2], stats[0]])
+        assert again is array and len(copies) == 3  # no new array, no new copy
+        assert second == {id(stats[2]): first[id(stats[2])], id(stats[0]): first[id(stats[0])]}
+        _, third = slots.place(r, stats[3:5])  # one free slot, then the least recent (query 1) gives way
+        assert len(copies) == 5 and third[id(stats[4])] == first[id(stats[1])]
+        _, fourth = slots.place(r, [stats[5], stats[4]])  # query 2 is now the least recent
+        assert fourth[id(stats[5])] == first[id(stats[2])] and fourth[id(stats[4])] == third[id(stats[4])]
+    finally:
+        del r.stack_window_queries
+    for q, k in [(stats[0], first[id(stats[0])]), (stats[3], third[id(stats[3])]), (stats[5], fourth[id(stats[5])])]:
+        np.testing.assert_array_equal(array.to_numpy()[k], q.to_numpy()[0])
+    index = np.array([fourth[id(stats[5])], third[id(stats[3])]], np.int32)
+    got = r.window_cost(cam, poses[0], array, query_index=index)
+    want = np.concatenate([r.window_cost(cam, poses[0][:1], stats[5]), r.window_cost(cam, poses[0][1:], stats[3])])
+    np.testing.assert_array_equal(got, want)
+
+
 def test_poses_of_other_intrinsics_render_as_their_own_launches():
     """A call with a camera per pose (intrinsics differ, one image size) gives every pose the image, cost,
     gradient and Gauss-Newton matrix of a call with its own camera, bit for bit; the cameras matter (swapped,

@@ -304,16 +304,16 @@ class Renderer:
         return out
 
     @staticmethod
-    def stack_window_queries(stats: Sequence[ti.Ndarray]) -> ti.Ndarray:
-        """Query statistics of one size (each from :meth:`upload_window_query`) stacked on the device:
-        [Q, H, W, 3, window.NQ], query ``k`` in slot ``k`` (for one launch scoring the poses of many queries)."""
-        shapes = {tuple(q.shape[1:]) for q in stats}
+    def stack_window_queries(stats: Sequence[ti.Ndarray], out: ti.Ndarray | None = None, slots=None) -> ti.Ndarray:
+        """Query statistics of one size (each from :meth:`upload_window_query`) stacked on the device, query ``k`` in
+        slot ``slots[k]`` (default ``k``) of ``out`` [Q, H, W, 3, window.NQ] (default: a new array of ``len(stats)``
+        slots), for one launch scoring the poses of many queries; returns ``out``."""
+        shapes = {tuple(q.shape[1:]) for q in stats} | ({tuple(out.shape[1:])} if out is not None else set())
         if len(shapes) != 1 or any(q.shape[0] != 1 for q in stats):
             raise ValueError(f"stacked queries must be single queries of one size, got {[q.shape for q in stats]}")
-        out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop())
-        copy = launcher(window.copy_query_kernel())
-        for k, q in enumerate(stats):
-            copy(q, 0, out, k)
+        out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop()) if out is None else out
+        for k, q in zip(range(len(stats)) if slots is None else slots, stats):
+            launcher(window.copy_query_kernel())(q, 0, out, int(k))
         return out
 
     def window_cost(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,

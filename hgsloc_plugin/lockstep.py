@@ -6,8 +6,8 @@ query waits, that thread serves one round: the calls that cannot be batched (que
 wait, else the largest group of ``window_cost`` or ``pose_gradient`` calls of one map, image size and settings,
 in one launch (each pose scored against its own query, whose statistics sit in a slot of one device array per
 image size, copied there once: ``Renderer.stack_window_queries``; and rendered with its own query's camera:
-intrinsics may differ); the queries
-served resume, the others wait for a later round, so queries that fell out of step meet again at a common call.
+intrinsics may differ); the queries served resume, the others wait for a later round, so queries that fell out
+of step meet again at a common call.
 So:
 
 - the host talks to the device once per step of the batch, not once per render call of each query;
@@ -251,7 +251,6 @@ class Lockstep:
                  else np.split(out, ends))
         for s, part in zip(group, parts):
             s.reply = (True, part)
-
 
 
 class _QuerySlots:

@@ -23,10 +23,10 @@ A Gaussian is dropped when that upper bound fails one of the five planes (no pos
 kept otherwise (and, in the gsplat radius mode, its opacity reaches ``alpha_min``, as the projection requires).
 Since ``cos(max(0, phi - max_rotation)) >= cos(phi)``, the bound is at least ``n.q + max_shift``: a plane this
 passes by a margin far above float64 rounding is passed without the angles, the others get the bound itself
-(the same flags). Kept Gaussians keep their order, so depth ties resolve as
-in the full map and images rendered from the working set equal those from the full map bit for bit.
-The reference is the projection kernel itself: ``tests/test_working_set.py`` checks that every Gaussian it
-keeps for poses on the region's edge is in the working set.
+(the same flags). Kept Gaussians keep their order, so depth ties resolve as in the full map and images rendered
+from the working set equal those from the full map bit for bit. The reference is the projection kernel itself:
+``tests/test_working_set.py`` checks that every Gaussian it keeps for poses on the region's edge is in the working
+set, and the flags against a NumPy twin of the bound.
 """
 
 

@@ -273,8 +273,8 @@ class _QuerySlots:
         wanted = {id(q) for q in stats}
         slot_of = {}
         for q in stats:
-            held = self.held.pop(id(q), None)
-            if held is None or held[0] is not q:
+            held = self.held.pop(id(q), None)  # held entries keep their statistics alive: an id is never reused
+            if held is None:
                 used = {k for _, k in self.held.values()}
                 free = next((k for k in range(self.capacity) if k not in used), None)
                 if free is None:  # the least recently used of the others gives way

@@ -27,8 +27,9 @@ renders, derivative passes and seconds per query, accuracy before / after (media
 
 ``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at
 the final scoring size, one pose, median of 15): projection, tile sort, blending, with the Gaussians rendered
-(the working set) and those visible (touching a tile); and one working-set selection around that prior (the
-default region, whatever the map's size), which a query makes a few times.
+(the working set), those visible (touching a tile), their tile-list entries, the pixels their alpha ellipses
+cover (summed, unclipped, per image pixel: what the blend visits at most); and one working-set selection around
+that prior (the default region, whatever the map's size), which a query makes a few times.
 """
 
 from __future__ import annotations
@@ -114,6 +115,7 @@ def stages(k: int) -> str:
     from hgsloc_plugin.demo.queries import query_poses
     from hgsloc_plugin.demo.run import QUERY_CAMERA
     from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.kernels.layout import Rec
     from hgsloc_plugin.refine.plan import make_plan
 
     room = make_room_scene()
@@ -145,8 +147,15 @@ def stages(k: int) -> str:
     full = ms(lambda: r.render_full(cam, [prior], bg))
     geometry = ms(lambda: r._geometry(cam, [prior], ws, bg))
     proj = ms(project)
-    visible = int((rec.ntiles.to_numpy()[0] > 0).sum())
-    return (f"| {scene.num_gaussians:,} | {r.n:,} | {visible:,} | {full:.1f} | {proj:.1f} | {geometry - proj:.1f} | "
+    ntiles = rec.ntiles.to_numpy()[0, :r.n]
+    seen = ntiles > 0
+    # each visible Gaussian's alpha ellipse sigma <= LIM, area 2 pi LIM / sqrt(ca cc - cb^2) (unclipped): the
+    # pixels the splat blend visits at most (it stops at saturated pixels)
+    packed = rec.packed.to_numpy()[0, :r.n][seen].astype(np.float64)
+    det = packed[:, Rec.CA] * packed[:, Rec.CC] - packed[:, Rec.CB] ** 2
+    footprint = float(np.sum(2.0 * np.pi * np.maximum(packed[:, Rec.LIM], 0.0) / np.sqrt(np.maximum(det, 1e-30))))
+    return (f"| {scene.num_gaussians:,} | {r.n:,} | {int(seen.sum()):,} | {int(ntiles.sum()):,} | "
+            f"{footprint / (cam.width * cam.height):.0f} | {full:.1f} | {proj:.1f} | {geometry - proj:.1f} | "
             f"{full - geometry:.1f} | {select:.1f} |")
 
 
@@ -162,8 +171,9 @@ def main() -> None:
     ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.stages:
-        print("| Gaussians | rendered (working set) | visible | render (ms) | projection | tile sort | blending "
-              "(and read-back) | selection (ms) |\n|---|---|---|---|---|---|---|---|", flush=True)
+        print("| Gaussians | rendered (working set) | visible | tile-list entries | footprint pixels per pixel | "
+              "render (ms) | projection | tile sort | blending (and read-back) | selection (ms) |\n"
+              "|---|---|---|---|---|---|---|---|---|---|", flush=True)
         for k in a.k:
             print(stages(k), flush=True)
         return

@@ -1,9 +1,11 @@
 """Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
-                                       [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--out FILE]
+                                       [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--rounds N]
+                                       [--out FILE]
 
-One process, one run. Per case, real photos first:
+One process; per case, ``--rounds`` (2) rounds of the queries one at a time and then in lockstep batches, each
+round's batched speed against the sequential queries just before it. Cases, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
   (% of the query's median depth, degrees) in random directions;
 - ``lego``: 5 held-out renders (white background), the same priors;
@@ -15,25 +17,24 @@ One process, one run. Per case, real photos first:
   metres, as 7-Scenes).
 
 Columns: Gaussians, scoring size, one plain render of one pose at the final scoring size (ms, on the renderer the
-refinement uses, in this process: after each sequential query the median of 3, their mean) and per pose of a 12-pose
-batch (before and after the sequential queries, the mean of the two),
-seconds per query, queries per second, time per query in render-times (machine-independent: the refinement's
-cost in single plain renders of the same map and size), renders and derivative passes per query, the prior's and
-the returned median error (% depth or cm; degrees), queries made worse: all for one query at a time
-(``refine_many(batch_size=1)``). Then the same queries in one lockstep batch (``--batch-size``, default the
-backend's: ``hgsloc_plugin/lockstep.py``; after an untimed batch of the first ``--batch-size`` queries, as the
-sequential queries follow an untimed one): seconds per query, speed over sequential, device calls per query
+refinement uses, in this process: after each sequential query the median of 3, their mean) and per pose of a
+12-pose batch (before and after the timed queries, the mean of the two), seconds per query, queries per second,
+time per query in render-times (machine-independent: the refinement's cost in single plain renders of the same
+map and size), renders and derivative passes per query, the prior's and the returned median error (% depth or cm;
+degrees), queries made worse: all for one query at a time (``refine_many(batch_size=1)``; times: the mean of the
+rounds). Then the same queries in one lockstep batch (``--batch-size``, default the backend's:
+``hgsloc_plugin/lockstep.py``; after an untimed batch of the first ``--batch-size`` queries, as the sequential
+queries follow an untimed one): seconds per query, speed over sequential (each round's), device calls per query
 sequential -> batched (the host-device round trips: a batched launch counts once), Taichi kernel launches per query
 sequential -> batched (uploads and read-backs included: each costs the host tens of microseconds whatever the
 device), the host's milliseconds per query outside Taichi's C++ launches, sequential -> batched (Python, NumPy,
-image loading and Taichi's Python launch path: what one process spends per query on any device, however fast
-its kernels; on the CPU the Python right after a kernel runs with cold caches, so more than it would beside a
-GPU), whether every
-returned pose equals the sequential one bit for bit, and the share of the CPU time the hypervisor took during the
-sequential and the batched queries (``benchmarks/machine.py``: the render-times and the batched speed move with
-it). A second table splits each query's
-time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its one-pixel moves),
-the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
+image loading and Taichi's Python launch path: what one process spends per query on any device, however fast its
+kernels; on the CPU the Python right after a kernel runs with cold caches, so more than it would beside a GPU),
+whether every returned pose of every round, sequential and batched, equals the first round's sequential one bit
+for bit, and the share of the CPU time the hypervisor took during the sequential and the batched queries
+(``benchmarks/machine.py``: the render-times and the batched speed move with it). A second table splits each
+query's time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its one-pixel
+moves), the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
 """
 
 from __future__ import annotations
@@ -219,7 +220,8 @@ CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
 
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,
-        raster: hp.RasterConfig | None = None, union_limit: float | None = None) -> tuple[str, str] | None:
+        raster: hp.RasterConfig | None = None, union_limit: float | None = None,
+        rounds: int = 2) -> tuple[str, str] | None:
     loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -232,29 +234,53 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     before = render_ms(refiner, cam, priors[0], singles=0)[1]
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
-    results, sec, units = [], 0.0, []
-    with stage_clock() as spent, kernel_launches() as seq_launches, StealClock() as steal:
-        for item in items:
-            t0 = time.perf_counter()
-            results += refiner.refine_many([item], progress=False, batch_size=1)
-            sec += time.perf_counter() - t0
-            # the unit right after each query, so that it sees the machine the query ran on (one measurement on
-            # each side of the queries moved by up to 50 % on this shared machine); its launches are not counted
-            counted = list(seq_launches)
-            units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
-            seq_launches[:] = counted
-    sec /= len(items)
-    ms, ms_batch = float(np.mean(units)), float(np.mean([before, render_ms(refiner, cam, priors[0], singles=0)[1]]))
+    n = len(items)
     # untimed: the batched launches' workspaces (passes and line searches of several poses) grow once per process,
     # as the sequential path's did in its warm-up query (room: 88 buffers made in a first batch, 29 in the next),
     # and the gate makes its query slots once per job (the timed batches reuse it, as a long job's later ones do)
     gate = Lockstep(batch_size, union_limit)
     batched(refiner, items[:batch_size], batch_size, gate=gate)
-    with kernel_launches() as batch_launches, StealClock() as steal_b:
-        together, sec_b, (requests, launches) = batched(refiner, items, batch_size, gate=gate)
-    n = len(items)
-    host_ms = [1000 * (sec - seq_launches[1] / n), 1000 * (sec_b - batch_launches[1] / n)]
-    same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for a, b in zip(results, together))
+    # rounds of the sequential queries, then the batch: each round's batched speed is against the sequential
+    # queries run just before it (this shared machine's speed drifts by 10-20 % within minutes)
+    runs, units, seq_sec, bat_sec = [], [], [], []
+    seq_launches, batch_launches, device_calls = [0, 0.0], [0, 0.0], [0, 0]
+    steal, steal_b = [], []
+    with stage_clock() as spent:
+        for _ in range(rounds):
+            results, sec = [], 0.0
+            with kernel_launches() as launches, StealClock() as clock:
+                for item in items:
+                    t0 = time.perf_counter()
+                    results += refiner.refine_many([item], progress=False, batch_size=1)
+                    sec += time.perf_counter() - t0
+                    # the unit right after each query, so that it sees the machine the query ran on (one measurement
+                    # on each side of the queries moved by up to 50 % on this shared machine); not counted
+                    counted = list(launches)
+                    units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
+                    launches[:] = counted
+            seq_sec.append(sec / n)
+            seq_launches = [a + b for a, b in zip(seq_launches, launches)]
+            steal.append(clock.share)
+            sequential_stages = dict(spent)  # the stage split is the sequential queries'
+            with kernel_launches() as launches, StealClock() as clock:
+                together, sec_b, calls = batched(refiner, items, batch_size, gate=gate)
+            spent.clear()
+            spent.update(sequential_stages)
+            bat_sec.append(sec_b)
+            batch_launches = [a + b for a, b in zip(batch_launches, launches)]
+            device_calls = [a + b for a, b in zip(device_calls, calls)]
+            steal_b.append(clock.share)
+            runs += [results, together]
+    sec, sec_b = float(np.mean(seq_sec)), float(np.mean(bat_sec))
+    ms, ms_batch = float(np.mean(units)), float(np.mean([before, render_ms(refiner, cam, priors[0], singles=0)[1]]))
+    per_query = rounds * n
+    host_ms = [1000 * (sec - seq_launches[1] / per_query), 1000 * (sec_b - batch_launches[1] / per_query)]
+    requests, launches = (c / rounds for c in device_calls)
+    results = runs[0]
+    same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes()
+               for other in runs[1:] for a, b in zip(results, other))
+    speeds = " / ".join(f"{a / b:.2f}" for a, b in zip(seq_sec, bat_sec))
+    spent = {k: v / rounds for k, v in spent.items()}
     scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
     e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
     e1 = np.array([[r.pose.errors_to(g)[0] * s, r.pose.errors_to(g)[1]] for (_, g, _, _), r, s in
@@ -267,10 +293,10 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
            f"{np.mean([r.derivative_passes for r in results]):.1f} | "
            f"{np.median(e0[:, 0]):.3f} / {np.median(e0[:, 1]):.2f} {unit} | "
            f"{np.median(e1[:, 0]):.3f} / {np.median(e1[:, 1]):.3f} | {worse} / {len(items)} | "
-           f"{sec_b:.2f} | {sec / sec_b:.2f}x | {requests / len(items):.0f} -> {launches / len(items):.0f} | "
-           f"{seq_launches[0] / len(items):.0f} -> {batch_launches[0] / len(items):.0f} | "
+           f"{sec_b:.2f} | {speeds}x | {requests / n:.0f} -> {launches / n:.0f} | "
+           f"{seq_launches[0] / per_query:.0f} -> {batch_launches[0] / per_query:.0f} | "
            f"{host_ms[0]:.0f} -> {host_ms[1]:.0f} | "
-           f"{'yes' if same else 'NO'} | {100 * steal.share:.0f} / {100 * steal_b.share:.0f} |")
+           f"{'yes' if same else 'NO'} | {100 * np.mean(steal):.0f} / {100 * np.mean(steal_b):.0f} |")
     print(row, flush=True)
     unit = len(items) * ms / 1000  # seconds of one render, per query
     parts = {k: v / unit for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
@@ -290,6 +316,7 @@ def main() -> None:
     ap.add_argument("--layout", choices=["backend", "cuda"], default="backend",
                     help="renderer settings: the backend's defaults, or CUDA's forced on any backend (its launch "
                          "counts; slow on the CPU)")
+    ap.add_argument("--rounds", type=int, default=2, help="rounds of sequential then batched queries per case")
     ap.add_argument("--union-limit", type=float,
                     help="Lockstep's union_limit (default: its own): 1 keeps the working sets of a large map's "
                          "queries in launches of their own")
@@ -299,7 +326,7 @@ def main() -> None:
     raster = hp.RasterConfig(**CUDA_LAYOUT) if a.layout == "cuda" else None
     bs = a.batch_size or default_batch_size()
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
-            f"ACE's and Marepo's errors); sequential, then batched ({bs} queries in lockstep)"
+            f"ACE's and Marepo's errors); {a.rounds} rounds of sequential, then batched ({bs} queries in lockstep)"
             f"{'; CUDA layout ' + str(CUDA_LAYOUT) if raster else ''}"
             f"{'; union limit ' + format(a.union_limit, 'g') if a.union_limit else ''}.", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
@@ -309,7 +336,10 @@ def main() -> None:
             "| host ms / query | same poses | steal %: sequential / batched |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(head), flush=True)
-    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit) for c in a.cases) if r]
+    if a.rounds < 1:
+        ap.error("--rounds must be at least 1")
+    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit, a.rounds) for c in a.cases)
+            if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -220,6 +220,18 @@ def test_refine_many_records_failures(room):
 def test_config_presets_and_validation():
     assert hp.RefineConfig.preset("paper").neighbourhood == "paper"
     assert hp.RefineConfig.preset("fast").max_expansions < hp.RefineConfig.preset("accurate").max_expansions
+    from hgsloc_plugin.refine.plan import make_plan
+
+    # with the gradient route first the polish size sets a query's cost: fast polishes smaller than the default
+    # on the real photos' 198 px too (the old fast did not), accurate larger on 640 px queries
+    room = make_room_scene()
+    for width, height in ((198, 148), (640, 480)):
+        cam = hp.Camera.from_focal(width, height, 0.8 * width)
+        plans = {name: make_plan(hp.RefineConfig.preset(name), room, cam, query_poses(1, seed=1)[0], hp.QueryPrior())
+                 for name in ("fast", "default", "accurate")}
+        side = {name: max(p.cam_polish.width, p.cam_polish.height) for name, p in plans.items()}
+        assert side["fast"] <= 120 < side["default"] <= side["accurate"], side
+        assert (side["accurate"] > side["default"]) == (width == 640), side
     with pytest.raises(ValueError):
         hp.RefineConfig(metric="nope")
     with pytest.raises(ValueError):

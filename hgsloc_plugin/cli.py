@@ -52,8 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
     r.add_argument("--config", default="default", help="preset: default (gradient first, the search when it is "
-                                                       "refused), search (always search), fast, accurate, gradient, "
-                                                       "paper")
+                                                       "refused), fast (scored and polished at 120 px: faster, "
+                                                       "coarser), accurate (polished up to 480 px, for large "
+                                                       "queries), search (always search), gradient, paper")
     r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
     r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
     r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "

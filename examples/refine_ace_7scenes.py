@@ -22,7 +22,7 @@ from hgsloc_plugin.adapters.intrinsics import from_pgt
 from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
 from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine import RefineConfig
-from hgsloc_plugin.refine.config import PRESETS
+from hgsloc_plugin.refine.config import PRESET_HELP, PRESETS
 from hgsloc_plugin.units import prior_error_overrides
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
@@ -36,9 +36,7 @@ def main(localizer: str = "ace") -> None:
                     / "poses" / "7scenes")
     ap.add_argument("--out", type=Path, default=Path(f"out/{localizer}"))
     ap.add_argument("--scenes", nargs="+", default=SCENES)
-    ap.add_argument("--config", default="default", choices=sorted(PRESETS),
-                    help="preset; fast: about 4.5x faster on 640x480 queries, with several times the default's "
-                         "sub-centimetre error (benchmarks/presets.md)")
+    ap.add_argument("--config", default="default", choices=sorted(PRESETS), help=PRESET_HELP)
     ap.add_argument("--limit", type=int)
     ap.add_argument("--prior-error", help="the localizer's typical camera-centre error, e.g. 2.9cm (default: unknown)")
     ap.add_argument("--prior-rotation-error", help="its typical rotation error, e.g. 1.04deg")

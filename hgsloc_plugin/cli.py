@@ -11,7 +11,7 @@ from pathlib import Path
 
 from .commands import cmd_check, cmd_demo, cmd_evaluate, cmd_perturb, cmd_refine, cmd_render
 from .fileio import dumps_json
-from .refine.config import METRICS
+from .refine.config import METRICS, PRESET_HELP
 from .units import count_arg, positive_count_arg
 
 logger = logging.getLogger("hgsloc_plugin")
@@ -51,10 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
     r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
-    r.add_argument("--config", default="default", help="preset: default (gradient first, the search when it is "
-                                                       "refused), fast (scored and polished at 120 px: faster, "
-                                                       "coarser), accurate (polished up to 480 px, for large "
-                                                       "queries), search (always search), gradient, paper")
+    r.add_argument("--config", default="default", help=PRESET_HELP)
     r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
     r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
     r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "

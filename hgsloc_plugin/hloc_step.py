@@ -46,6 +46,7 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def build_parser() -> argparse.ArgumentParser:
     """The step's command line (hloc's flag style)."""
+    from .refine.config import PRESET_HELP
     from .units import count_arg, positive_count_arg
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -54,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--results", type=Path, required=True)
     ap.add_argument("--image_dir", type=Path, required=True)
     ap.add_argument("--output", type=Path, required=True)
-    ap.add_argument("--config", default="default")
+    ap.add_argument("--config", default="default", help=PRESET_HELP)
     ap.add_argument("--limit", type=count_arg)
     ap.add_argument("--allow_distortion", action="store_true")
     ap.add_argument("--batch_size", type=positive_count_arg, help="queries refined together (default: 4 on the "

@@ -170,6 +170,11 @@ class RefineConfig:
         return dataclasses.asdict(self)
 
 
+#: the presets in a command line's help (``hgsloc refine --config``, the HLoc step, the examples)
+PRESET_HELP = ("preset: default (gradient first, the search when it is refused), fast (scored and polished at 120 "
+               "px: faster, coarser), accurate (polished up to 480 px, for large queries), search (always search), "
+               "gradient, paper; figures: benchmarks/presets.md")
+
 PRESETS: dict[str, RefineConfig] = {
     "default": RefineConfig(),
     # Levenberg-Marquardt from the coarse pose, no lattice search (where each part is needed: benchmarks/).

@@ -8,12 +8,13 @@
 #   3. the 7-Scenes-shaped job in processes sharing the GPU (plain processes, and Ray workers where Ray is
 #      installed): the host side of a query outlasts its kernels there;
 #   4. the same refinements recorded on CUDA and on the CPU, compared (the same poses within 0.001 % of the depth);
-#   5. the tile lists binned by ellipse and by box (RasterConfig.tile_test's CUDA default);
-#   6. the densified room's lockstep batches with their working sets' union up to 2x, and none
+#   5. the presets on CUDA (the fast preset's queries per second on the 7-Scenes-shaped job);
+#   6. the tile lists binned by ellipse and by box (RasterConfig.tile_test's CUDA default);
+#   7. the densified room's lockstep batches with their working sets' union up to 2x, and none
 #      (backend.DEFAULT_UNION_LIMIT's CUDA default);
-#   7. the derivative pass in its layouts: tiles, pixels with and without pixel masks (RasterConfig.blend's and
+#   8. the derivative pass in its layouts: tiles, pixels with and without pixel masks (RasterConfig.blend's and
 #      grad_masks' CUDA defaults);
-#   8. the map-scale table.
+#   9. the map-scale table.
 # A step starts only while the budget (GPU_CHECK_BUDGET_S seconds, default 540) lasts, and is stopped at its end;
 # OUT_DIR/steps.log lists each step's exit status and seconds ("skipped" past the budget).
 # Exit status: 0 all passed, 1 a step failed, 3 none failed but some were skipped or stopped for time.
@@ -65,20 +66,22 @@ backends() {
 }
 
 unions() {
-  HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 1 \
+  HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 1 --rounds 1 \
       --out "$out/throughput_cuda_no_union.md" \
-    && HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 2 \
+    && HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 2 --rounds 1 \
       --out "$out/throughput_cuda_union2.md"
 }
 
 export -f cuda_tests backends unions
 export out PY
 step tests bash -c cuda_tests
-step throughput env HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --shaped-queries 64 \
+step throughput env HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --shaped-queries 64 --rounds 1 \
     --out "$out/throughput_cuda.md"
 step scale env HGSLOC_ARCH=cuda "$PY" benchmarks/scale.py --queries 64 --processes 4 8 --workers 4 8 \
     --threads 2 --out "$out/scale_cuda.md"
 step backends bash -c backends
+step presets env HGSLOC_ARCH=cuda "$PY" benchmarks/presets.py --cases 7scenes_shaped snow_sharp --rounds 1 \
+    --out "$out/presets_cuda.md"
 step tile_lists env HGSLOC_ARCH=cuda "$PY" benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md"
 step unions bash -c unions
 step derivative_pass env HGSLOC_ARCH=cuda "$PY" benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md"

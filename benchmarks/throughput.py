@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
                                        [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--rounds N]
-                                       [--out FILE]
+                                       [--config PRESET] [--out FILE]
 
 One process; per case, ``--rounds`` (2) rounds of the queries one at a time and then in lockstep batches, each
 round's batched speed against the sequential queries just before it. Cases, real photos first:
@@ -61,6 +61,7 @@ from hgsloc_plugin.backend import default_batch_size  # noqa: E402
 from hgsloc_plugin.batch import as_queries  # noqa: E402
 from hgsloc_plugin.lockstep import Lockstep, refine_queries  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.refine.config import PRESETS  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
 
 
@@ -221,7 +222,7 @@ CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,
         raster: hp.RasterConfig | None = None, union_limit: float | None = None,
-        rounds: int = 2) -> tuple[str, str] | None:
+        rounds: int = 2, preset: str = "default") -> tuple[str, str] | None:
     loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -230,7 +231,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     metric = is_metric(case)
     unit = "cm" if metric else "% depth"
     priors = case_priors(case, qs, pct, deg)
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset(preset, background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
     before = render_ms(refiner, cam, priors[0], singles=0)[1]
     items = [(img, cam, p, n) for (n, _, img, _), p in zip(qs, priors)]
@@ -317,6 +318,7 @@ def main() -> None:
                     help="renderer settings: the backend's defaults, or CUDA's forced on any backend (its launch "
                          "counts; slow on the CPU)")
     ap.add_argument("--rounds", type=int, default=2, help="rounds of sequential then batched queries per case")
+    ap.add_argument("--config", default="default", choices=sorted(PRESETS), help="the refinement's preset")
     ap.add_argument("--union-limit", type=float,
                     help="Lockstep's union_limit (default: its own): 1 keeps the working sets of a large map's "
                          "queries in launches of their own")
@@ -328,7 +330,8 @@ def main() -> None:
     head = [f"Backend {arch}; priors {pct:g} % of the depth (room: {pct:g} cm) / {deg:g} deg (7scenes_shaped: "
             f"ACE's and Marepo's errors); {a.rounds} rounds of sequential, then batched ({bs} queries in lockstep)"
             f"{'; CUDA layout ' + str(CUDA_LAYOUT) if raster else ''}"
-            f"{'; union limit ' + format(a.union_limit, 'g') if a.union_limit else ''}.", "",
+            f"{'; union limit ' + format(a.union_limit, 'g') if a.union_limit else ''}"
+            f"{'; preset ' + a.config if a.config != 'default' else ''}.", "",
             "| case | Gaussians | scoring size | render (ms: one pose / per pose of 12) | s / query | queries / s "
             "| render-times / query "
             "| renders / query | derivative passes | prior median t / R | returned median t / R | worse "
@@ -338,8 +341,8 @@ def main() -> None:
     print("\n".join(head), flush=True)
     if a.rounds < 1:
         ap.error("--rounds must be at least 1")
-    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit, a.rounds) for c in a.cases)
-            if r]
+    done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit, a.rounds, a.config)
+                        for c in a.cases) if r]
     rows = [r for r, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
              *(s for _, s in done)]

@@ -182,7 +182,8 @@ PRESETS: dict[str, RefineConfig] = {
     # Always the lattice search + polish (no gradient-first route).
     "search": RefineConfig(gradient_first=False),
     # Scoring and polish at 120 px, smaller search budgets: 1.5-1.8x faster than the default on 198 px photos,
-    # 2.8-4.7x on 320-640 px queries, with 1.7-4x its error where the map is sharp (benchmarks/presets.md).
+    # 2.8-4.7x on 320-640 px queries; its error 1.7x the default's on the sharp real map, 4-12x on the synthetic
+    # room's 320-640 px queries (0.45-0.87 cm against 0.04-0.21: benchmarks/presets.md).
     "fast": RefineConfig(max_expansions_per_level=15, max_expansions=60, score_max_side=120, polish_iterations=4,
                          polish_max_side=120),
     # Polish up to 480 px (the default: 320), larger search budgets: on 640x480 queries 4x less error for 1.6x

@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", default="demo_out")
     m.add_argument("--queries", type=positive_count_arg, default=6)
     m.add_argument("--noise", action="append", help="protocol, e.g. '3cm,1deg' or 'q2,t2' (repeatable)")
-    m.add_argument("--config", default="default")
+    m.add_argument("--config", default="default", help=PRESET_HELP)
     m.add_argument("--quiet", action="store_true")
     m.set_defaults(func=cmd_demo)
     return ap

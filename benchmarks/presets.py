@@ -4,7 +4,7 @@ Usage: python benchmarks/presets.py [--cases snow_sharp snow lego room 7scenes_s
                                     [--presets default fast accurate] [--noise 2,1] [--rounds 2] [--out FILE]
 
 The cases, queries and priors of ``benchmarks/throughput.py`` (real photos first). A preset is a name of
-``RefineConfig.PRESETS`` with optional overrides, ``name:field=value,field=value`` (e.g. ``fast:polish_max_side=240``).
+``refine.config.PRESETS`` with optional overrides, ``name:field=value,field=value`` (e.g. ``fast:polish_max_side=240``).
 Per case each preset refines the queries once untimed (kernel loading), then ``--rounds`` rounds in which every
 preset refines every query one at a time (in the order given), so that each round compares the presets on the
 same stretch of this shared machine. Columns: the final polish size, seconds per query (mean of the rounds), the

@@ -1,11 +1,12 @@
-"""Throughput: queries per second of the default refinement, and each query's time in units of one plain render.
+"""Throughput: queries per second of a preset's refinement, and each query's time in units of one plain render.
 
 Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
                                        [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--rounds N]
                                        [--config PRESET] [--out FILE]
 
 One process; per case, ``--rounds`` (2) rounds of the queries one at a time and then in lockstep batches, each
-round's batched speed against the sequential queries just before it. Cases, real photos first:
+round's batched speed against the sequential queries just before it; ``--config`` the preset (default: the
+default). Cases, real photos first:
 - ``snow_sharp`` / ``snow``: the 6 real snow photos on the good and the imperfect map; priors of exactly ``--noise``
   (% of the query's median depth, degrees) in random directions;
 - ``lego``: 5 held-out renders (white background), the same priors;

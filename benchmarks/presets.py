@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from real_photos import write_keeping_notes  # noqa: E402
-from throughput import case_priors, is_metric, load  # noqa: E402
+from throughput import case_errors, case_priors, is_metric, load, same_poses, worse_count  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
@@ -71,17 +71,14 @@ def run(case: str, specs: list[str], pct: float, deg: float, rounds: int) -> lis
             t0 = time.perf_counter()
             results[k].append([refiner.refine(img, cam, p) for (_, _, img, _), p in zip(qs, priors)])
             secs[r, k] = (time.perf_counter() - t0) / len(qs)
-    scale = [(100.0 if is_metric(case) else 100.0 / d) for _, _, _, d in qs]
     unit = "cm" if is_metric(case) else "% depth"
-    e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
+    e0 = case_errors(case, qs, priors)
     rows = []
     for k, spec in enumerate(specs):
         first = results[k][0]
-        same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes()
-                   for other in results[k][1:] for a, b in zip(first, other))
-        e1 = np.array([[x.pose.errors_to(g)[0] * s, x.pose.errors_to(g)[1]] for (_, g, _, _), x, s in
-                       zip(qs, first, scale)])
-        worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+        same = same_poses(first, results[k][1:])
+        e1 = case_errors(case, qs, [x.pose for x in first])
+        worse = worse_count(e0, e1)
         plan = make_plan(refiners[k].config, scene, cam, priors[0], hp.QueryPrior())
         speed = " / ".join(f"{secs[r, 0] / secs[r, k]:.2f}" for r in range(rounds))
         rows.append(f"| {case} | `{spec}` | {plan.cam_polish.width}x{plan.cam_polish.height} | "

@@ -122,6 +122,24 @@ def case_priors(case: str, qs, pct: float, deg: float, seed: int = 7) -> list[hp
     return [se3_noise(g, deg, pct / 100 * (1.0 if is_metric(case) else d), rng) for _, g, _, d in qs]
 
 
+def case_errors(case: str, qs, poses: list[hp.Pose]) -> np.ndarray:
+    """[n, 2]: each pose's error to its query's truth (``qs``: ``load``'s), the centre in % of the query's median
+    depth (cm on the room) and the rotation in degrees."""
+    scale = [(100.0 if is_metric(case) else 100.0 / d) for _, _, _, d in qs]
+    return np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, poses, scale)])
+
+
+def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
+    """How many returned poses (errors ``e1`` [n, 2]) are further from the truth than their priors (``e0``)."""
+    return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+
+
+def same_poses(first: list, others: list[list]) -> bool:
+    """Whether every result list of ``others`` returned ``first``'s poses bit for bit."""
+    return all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for other in others
+               for a, b in zip(first, other))
+
+
 def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles: int = 15,
               batch: bool = True) -> tuple[float, float]:
     """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of
@@ -229,8 +247,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
         print(f"skipping {case}: data not found", file=sys.stderr)
         return None
     cam, scene, qs, bg = loaded
-    metric = is_metric(case)
-    unit = "cm" if metric else "% depth"
+    unit = "cm" if is_metric(case) else "% depth"
     priors = case_priors(case, qs, pct, deg)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset(preset, background=bg), raster=raster)
     refiner.refine(qs[0][2], cam, priors[0])  # warm-up: kernel loading, workspaces
@@ -279,15 +296,11 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     host_ms = [1000 * (sec - seq_launches[1] / per_query), 1000 * (sec_b - batch_launches[1] / per_query)]
     requests, launches = (c / rounds for c in device_calls)
     results = runs[0]
-    same = all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes()
-               for other in runs[1:] for a, b in zip(results, other))
+    same = same_poses(results, runs[1:])
     speeds = " / ".join(f"{a / b:.2f}" for a, b in zip(seq_sec, bat_sec))
     spent = {k: v / rounds for k, v in spent.items()}
-    scale = [(100.0 if metric else 100.0 / d) for _, _, _, d in qs]
-    e0 = np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, priors, scale)])
-    e1 = np.array([[r.pose.errors_to(g)[0] * s, r.pose.errors_to(g)[1]] for (_, g, _, _), r, s in
-                   zip(qs, results, scale)])
-    worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+    e0, e1 = case_errors(case, qs, priors), case_errors(case, qs, [r.pose for r in results])
+    worse = worse_count(e0, e1)
     plan = make_plan(refiner.config, scene, cam, priors[0], hp.QueryPrior())
     row = (f"| {case} | {scene.num_gaussians:,} | {plan.cam_final.width}x{plan.cam_final.height} | {ms:.1f} / "
            f"{ms_batch:.1f} | "

@@ -232,7 +232,9 @@ class Lockstep:
         calls = [s.arguments for s in group]
         stats = list({id(c["qstats"]): c["qstats"] for c in calls}.values())
         shape = tuple(stats[0].shape[1:])
-        slots = self._slots.setdefault(shape, _QuerySlots(SLOTS_PER_QUERY * self.batch_size, shape))
+        slots = self._slots.get(shape)
+        if slots is None:  # one per image size, made once
+            slots = self._slots[shape] = _QuerySlots(SLOTS_PER_QUERY * self.batch_size, shape)
         poses = [p for c in calls for p in c["poses"]]
         args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
         if any(c["camera"] != args["camera"] for c in calls):  # queries of other intrinsics: a camera per pose

@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import DATA, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
+from real_photos import DATA, localizer_errors, shaped_prior, worse_count, write_keeping_notes  # noqa: E402
 from trust import data_case, donut_case, room_case  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
@@ -163,7 +163,7 @@ def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = Non
             searched += r.route != "gradient"
         sec = (time.perf_counter() - t0) / len(gts)
         e0, e1 = np.array(e0), np.array(e1)
-        worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+        worse = worse_count(e0, e1)
         line = (f"| {row} | {np.median(e0[:, 0]):.1f} / {np.median(e0[:, 1]):.2f} | "
                 f"{within(e0, 1, 0.5):.0f} -> {within(e1, 1, 0.5):.0f} | {within(e0, 2, 0.5):.0f} -> "
                 f"{within(e1, 2, 0.5):.0f} | {within(e0, 5, 5):.0f} -> "

@@ -26,8 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import write_keeping_notes  # noqa: E402
-from throughput import case_errors, case_priors, is_metric, load, same_poses, worse_count  # noqa: E402
+from real_photos import worse_count, write_keeping_notes  # noqa: E402
+from throughput import case_errors, case_priors, is_metric, load, same_poses  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402

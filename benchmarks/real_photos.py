@@ -94,6 +94,11 @@ def shaped_prior(gt: hp.Pose, err: hp.Pose, depth: float) -> hp.Pose:
     return hp.Pose(err.qvec, err.tvec * depth / 2.0) @ gt
 
 
+def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
+    """How many returned poses (errors ``e1`` [n, 2]) are further from the truth than their priors (``e0``)."""
+    return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+
+
 def write_keeping_notes(path: Path, lines: list[str]) -> None:
     """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping the ``## Notes`` section the file
     already has below its tables: a benchmark regenerates its figures, not the discussion written beside them."""
@@ -157,7 +162,7 @@ def run(dataset: str, heuristics: list[str], seeds: int) -> list[str]:
                 ren.append(r.renders)
             sec = (time.perf_counter() - t0) / len(items)
             e0, e1, es = np.array(e0), np.array(e1), np.array(es)
-            worse = int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+            worse = worse_count(e0, e1)
 
             def fmt(e, worst=True):
                 m = f"{np.median(e[:, 0]):.3f} / {np.median(e[:, 1]):.2f}"

@@ -55,7 +55,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from machine import StealClock  # noqa: E402
-from real_photos import load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
+from real_photos import load_dataset, localizer_errors, shaped_prior, worse_count, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.backend import default_batch_size  # noqa: E402
@@ -127,11 +127,6 @@ def case_errors(case: str, qs, poses: list[hp.Pose]) -> np.ndarray:
     depth (cm on the room) and the rotation in degrees."""
     scale = [(100.0 if is_metric(case) else 100.0 / d) for _, _, _, d in qs]
     return np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, poses, scale)])
-
-
-def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
-    """How many returned poses (errors ``e1`` [n, 2]) are further from the truth than their priors (``e0``)."""
-    return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
 
 
 def same_poses(first: list, others: list[list]) -> bool:

@@ -298,8 +298,7 @@ class Renderer:
         """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
         ([1, H, W, 3, window.NQ]: one query; ``image`` [H, W, 3] float in [0, 1])."""
         q = Renderer.upload_image(image)
-        H, W = q.shape[:2]
-        out = ti.ndarray(ti.f32, (1, H, W, 3, window.NQ))
+        out = ti.ndarray(ti.f32, (1, *q.shape[:2], 3, window.NQ))
         launcher(window.query_stats_kernel())(q, 0, out)
         return out
 
@@ -312,8 +311,9 @@ class Renderer:
         if len(shapes) != 1 or any(q.shape[0] != 1 for q in stats):
             raise ValueError(f"stacked queries must be single queries of one size, got {[q.shape for q in stats]}")
         out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop()) if out is None else out
+        copy = launcher(window.copy_query_kernel())
         for k, q in zip(range(len(stats)) if slots is None else slots, stats):
-            launcher(window.copy_query_kernel())(q, 0, out, int(k))
+            copy(q, 0, out, int(k))
         return out
 
     def window_cost(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,

@@ -35,7 +35,9 @@ whether every returned pose of every round, sequential and batched, equals the f
 for bit, and the share of the CPU time the hypervisor took during the sequential and the batched queries
 (``benchmarks/machine.py``: the render-times and the batched speed move with it). A second table splits each
 query's time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its one-pixel
-moves), the lattice search (usual and wide levels), and the rest (plan, working set, query upload).
+moves), the lattice search (usual and wide levels), and the rest (plan, working set, query upload); on the CPU, where
+a launch runs its kernel, a third by kernel (the seconds in each kernel's launches, named by the ``@ti.kernel``
+function, ``kernels/``), the rest being the host's.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import argparse
 import contextlib
 import math
 import sys
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -191,29 +194,47 @@ def stage_clock():
 
 @contextlib.contextmanager
 def kernel_launches():
-    """Taichi kernel launches while inside: a list holding their count and the seconds spent in Taichi's C++ launch
-    (``Program.launch_kernel``: on the CPU the kernel's run, on CUDA the enqueue and any wait for a host array), so
-    that every launch counts once, through ``Kernel.__call__`` or a ``kernels/launch.py`` Launcher; a ``from_numpy``
-    upload and a read-back are launches too. The Python each launch costs before it stays outside (host time)."""
+    """Taichi kernel launches while inside: a list holding their count, the seconds spent in Taichi's C++ launch
+    (``Program.launch_kernel``: on the CPU the kernel's run, on CUDA the enqueue and any wait for a host array) and
+    those seconds per kernel name ({name: s}), so that every launch counts once, through ``Kernel.__call__`` or a
+    ``kernels/launch.py`` Launcher; a ``from_numpy`` upload and a read-back are launches too. The Python each launch
+    costs before it stays outside (host time)."""
     from taichi.lang import impl
+    from taichi.lang.kernel_impl import Kernel
 
-    count = [0, 0.0]
+    count = [0, 0.0, defaultdict(float)]
     program = type(impl.get_runtime().prog)
-    original = program.launch_kernel
+    launcher_class = sys.modules["hgsloc_plugin.kernels.launch"].Launcher  # benchmarks/ shadows the subpackages
+    originals = (program.launch_kernel, launcher_class.__call__, Kernel.__call__)
+    naming = threading.local()  # the kernel the launching thread is in (a Launcher's, else Taichi's own)
 
     def counted(self, *args, **kwargs):
         count[0] += 1
         t0 = time.perf_counter()
         try:
-            return original(self, *args, **kwargs)
+            return originals[0](self, *args, **kwargs)
         finally:
-            count[1] += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            count[1] += dt
+            count[2][getattr(naming, "name", None) or "other"] += dt
+
+    def named(original, name_of):
+        def call(self, *args, **kwargs):
+            outer = getattr(naming, "name", None)
+            naming.name = outer or name_of(self)
+            try:
+                return original(self, *args, **kwargs)
+            finally:
+                naming.name = outer
+        return call
 
     program.launch_kernel = counted
+    launcher_class.__call__ = named(originals[1], lambda k: getattr(k.kernel, "__name__", "other"))
+    Kernel.__call__ = named(originals[2], lambda k: getattr(k.func, "__name__", "other"))
     try:
         yield count
     finally:
-        program.launch_kernel = original
+        program.launch_kernel, launcher_class.__call__, Kernel.__call__ = originals
 
 
 def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit: float | None = None,
@@ -236,7 +257,7 @@ CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,
         raster: hp.RasterConfig | None = None, union_limit: float | None = None,
-        rounds: int = 2, preset: str = "default") -> tuple[str, str] | None:
+        rounds: int = 2, preset: str = "default") -> tuple[str, str, str] | None:
     loaded = load(case, shaped_queries)
     if loaded is None:
         print(f"skipping {case}: data not found", file=sys.stderr)
@@ -258,6 +279,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     # queries run just before it (this shared machine's speed drifts by 10-20 % within minutes)
     runs, units, seq_sec, bat_sec = [], [], [], []
     seq_launches, batch_launches, device_calls = [0, 0.0], [0, 0.0], [0, 0]
+    seq_kernels: dict[str, float] = defaultdict(float)  # seconds per kernel name, sequential rounds
     steal, steal_b = [], []
     with stage_clock() as spent:
         for _ in range(rounds):
@@ -269,11 +291,13 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
                     sec += time.perf_counter() - t0
                     # the unit right after each query, so that it sees the machine the query ran on (one measurement
                     # on each side of the queries moved by up to 50 % on this shared machine); not counted
-                    counted = list(launches)
+                    counted = [*launches[:2], defaultdict(float, launches[2])]
                     units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
                     launches[:] = counted
             seq_sec.append(sec / n)
-            seq_launches = [a + b for a, b in zip(seq_launches, launches)]
+            seq_launches = [a + b for a, b in zip(seq_launches, launches[:2])]
+            for k, v in launches[2].items():
+                seq_kernels[k] += v
             steal.append(clock.share)
             sequential_stages = dict(spent)  # the stage split is the sequential queries'
             with kernel_launches() as launches, StealClock() as clock:
@@ -281,7 +305,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
             spent.clear()
             spent.update(sequential_stages)
             bat_sec.append(sec_b)
-            batch_launches = [a + b for a, b in zip(batch_launches, launches)]
+            batch_launches = [a + b for a, b in zip(batch_launches, launches[:2])]
             device_calls = [a + b for a, b in zip(device_calls, calls)]
             steal_b.append(clock.share)
             runs += [results, together]
@@ -312,7 +336,11 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     parts = {k: v / unit for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
     rest = 1000 * sec / ms - sum(parts.values())
     split = f"| {case} | " + ", ".join(f"{k} {v:.0f}" for k, v in parts.items()) + f", rest {rest:.0f} |"
-    return row, split
+    by_kernel = {k: v / rounds / unit for k, v in sorted(seq_kernels.items(), key=lambda kv: -kv[1])}
+    host = 1000 * sec / ms - sum(by_kernel.values())
+    kernels = (f"| {case} | " + ", ".join(f"{k} {v:.1f}" for k, v in by_kernel.items() if v >= 0.05)
+               + f", host {host:.1f} |")
+    return row, split, kernels
 
 
 def main() -> None:
@@ -352,9 +380,12 @@ def main() -> None:
         ap.error("--rounds must be at least 1")
     done = [r for r in (run(c, pct, deg, bs, a.shaped_queries, raster, a.union_limit, a.rounds, a.config)
                         for c in a.cases) if r]
-    rows = [r for r, _ in done]
+    rows = [r for r, _, _ in done]
     split = ["", "Where a query's time goes (render-times per query, by stage):", "", "| case | stages |", "|---|---|",
-             *(s for _, s in done)]
+             *(s for _, s, _ in done)]
+    if arch != "cuda":  # a CPU launch runs its kernel; a CUDA one only enqueues it
+        split += ["", "By kernel (render-times per query in each kernel's launches, then the host's share):", "",
+                  "| case | kernels |", "|---|---|", *(k for _, _, k in done)]
     print("\n".join(split), flush=True)
     if a.out:
         write_keeping_notes(a.out, ["# Throughput (`benchmarks/throughput.py`)", "",

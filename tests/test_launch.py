@@ -98,3 +98,27 @@ def test_upload_equals_from_numpy(kernels):
         np.testing.assert_array_equal(a.to_numpy(), b.to_numpy())
     with pytest.raises(ValueError, match="shape"):
         launch.upload(a, values[0])
+
+
+def test_empty_arrays_work_as_taichis_and_keep_their_own_memory(kernels):
+    """``launch.empty``: a scalar ndarray of the shape and element type asked, usable on the fast path and on
+    Taichi's, each with its own memory (a write to one leaves another intact), freed with its object; a bad shape
+    is refused as by ``ti.ndarray``."""
+    affine, fill = kernels[0], kernels[1]
+    rng = np.random.default_rng(1)
+    for k in range(3):
+        src = launch.empty(ti.f32, (5, 7))
+        assert isinstance(src, ti.Ndarray) and src.shape == (5, 7) and src.dtype == ti.f32
+        host = rng.random((5, 7), dtype=np.float32)
+        launch.upload(src, host)
+        other = launch.empty(ti.f32, (5, 7))
+        launch.launcher(fill)(other, float(k))
+        out = np.zeros((5, 7), np.float64)
+        launch.launcher(affine)(src, 2.0, 1, 0, out)  # through a Launcher: the second call on its fast path
+        np.testing.assert_array_equal(out, (host * np.float32(2.0) + np.float32(1.0)).astype(np.float64))
+        np.testing.assert_array_equal(src.to_numpy(), host)
+        np.testing.assert_array_equal(other.to_numpy(), np.full((5, 7), k, np.float32))
+    ints = launch.empty(ti.i32, (3,))
+    assert ints.dtype == ti.i32 and ints.shape == (3,)
+    with pytest.raises(Exception, match="not a valid shape"):
+        launch.empty(ti.f32, (0, 4))

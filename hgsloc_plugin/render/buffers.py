@@ -13,7 +13,7 @@ import taichi as ti
 
 from ..kernels import window_grad
 from ..kernels.footprint import RECT_SIZE
-from ..kernels.launch import launcher, upload
+from ..kernels.launch import empty, launcher, upload
 from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
@@ -264,7 +264,7 @@ class Pool:
         if nd is None:
             if len(self.query_indices) >= 64:
                 self.query_indices.clear()
-            nd = self.query_indices[key] = ti.ndarray(ti.i32, (max(1, index.size),))
+            nd = self.query_indices[key] = empty(ti.i32, (max(1, index.size),))
             upload(nd, index if index.size else np.zeros(1, np.int32))
         return nd
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from ..kernels.launch import empty
 from ..kernels.launch import upload as upload_into
 from ..pose import Pose, qvecs_to_rotmats
 from ..scene import GaussianScene
@@ -54,7 +55,7 @@ def as_pose_list(poses) -> tuple[list[Pose], bool]:
 def upload(a: np.ndarray, dtype) -> ti.Ndarray:
     """A host array as a device ndarray of ``dtype`` (same shape)."""
     a = np.ascontiguousarray(a)
-    nd = ti.ndarray(dtype, shape=a.shape)
+    nd = empty(dtype, a.shape)
     upload_into(nd, a)
     return nd
 

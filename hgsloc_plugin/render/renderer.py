@@ -18,7 +18,7 @@ from ..camera import Camera, pose_cameras, size_camera
 from ..kernels import RasterConfig, cull, window
 from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
 from ..kernels.footprint import uses_ellipse_tiles
-from ..kernels.launch import launcher
+from ..kernels.launch import empty, launcher
 from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
@@ -119,7 +119,7 @@ class Renderer:
         """
         g = self.gaussians
         rows, fac = cull.planes(cameras, self.config)
-        keep = ti.ndarray(ti.i32, (self.n,))
+        keep = empty(ti.i32, (self.n,))  # the kernel sets every entry
         planes = [upload(np.asarray(a, np.float64), ti.f64) for a in (pose.matrix34(), rows, fac)]
         launcher(cull.keep_kernel(self.config))(g.means, g.smax, g.opacities, *planes, float(max_shift),
                                                 float(np.radians(max_rotation_deg)), keep)
@@ -140,7 +140,7 @@ class Renderer:
         gathered = {}
         for name in DeviceGaussians.FIELDS:
             src = getattr(self.gaussians, name)
-            dst = ti.ndarray(ti.f32, (idx.size,) + tuple(src.shape[1:]))
+            dst = empty(ti.f32, (idx.size,) + tuple(src.shape[1:]))
             launcher(cull.gather_kernel(len(src.shape)))(src, nd_idx, dst)
             gathered[name] = dst
         other = self.with_gaussians(DeviceGaussians(**gathered, source_index=self.source_index[idx]))
@@ -298,7 +298,7 @@ class Renderer:
         """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
         ([1, H, W, 3, window.NQ]: one query; ``image`` [H, W, 3] float in [0, 1])."""
         q = Renderer.upload_image(image)
-        out = ti.ndarray(ti.f32, (1, *q.shape[:2], 3, window.NQ))
+        out = empty(ti.f32, (1, *q.shape[:2], 3, window.NQ))  # the kernel sets every entry
         launcher(window.query_stats_kernel())(q, 0, out)
         return out
 
@@ -310,7 +310,7 @@ class Renderer:
         shapes = {tuple(q.shape[1:]) for q in stats} | ({tuple(out.shape[1:])} if out is not None else set())
         if len(shapes) != 1 or any(q.shape[0] != 1 for q in stats):
             raise ValueError(f"stacked queries must be single queries of one size, got {[q.shape for q in stats]}")
-        out = ti.ndarray(ti.f32, (len(stats),) + shapes.pop()) if out is None else out
+        out = empty(ti.f32, (len(stats),) + shapes.pop()) if out is None else out
         copy = launcher(window.copy_query_kernel())
         for k, q in zip(range(len(stats)) if slots is None else slots, stats):
             copy(q, 0, out, int(k))

@@ -71,8 +71,10 @@ def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
     follows Pillow's; here Pillow's, per channel in 32-bit float mode); deterministic."""
     if img.shape[0] == height and img.shape[1] == width:
         return img
-    chans = [np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c], dtype=np.float32))  # mode "F"
-                        .resize((int(width), int(height)), Image.Resampling.BILINEAR)) for c in range(3)]
+    planes = [np.ascontiguousarray(img[..., c], dtype=np.float32) for c in range(3)]
+    # each plane as a 32-bit float image, straight from its bytes (Image.fromarray's array-interface checks skipped)
+    chans = [np.asarray(Image.frombuffer("F", (img.shape[1], img.shape[0]), p, "raw", "F", 0, 1)
+                        .resize((int(width), int(height)), Image.Resampling.BILINEAR)) for p in planes]
     return np.ascontiguousarray(np.stack(chans, axis=-1).clip(0, 1), dtype=np.float32)
 
 

@@ -11,8 +11,9 @@ everything; the wrapper then keeps the compiled kernel and one setter per argume
 signature only set the arguments and launch. The kernels, their arguments and so every result are those of
 Taichi's path. A signature the fast path does not cover (template or matrix arguments, return values, prints,
 autodiff, a non-contiguous host array) keeps Taichi's path; so does a Taichi reset (a new program).
-Written against Taichi 1.7's internals (``kernel_impl.Kernel``), the version the package pins;
-``HGSLOC_FAST_LAUNCH=0`` turns it off.
+:func:`empty` makes a device array without Taichi's zero fill, for arrays an upload or a kernel fills whole.
+Written against Taichi 1.7's internals (``kernel_impl.Kernel``, ``ScalarNdarray``), the version the package pins;
+``HGSLOC_FAST_LAUNCH=0`` turns both off.
 """
 
 from __future__ import annotations
@@ -147,13 +148,14 @@ def empty(dtype, shape: tuple[int, ...]) -> ti.Ndarray:
     prog = impl.get_runtime().prog
     if _ENABLED and prog is not None and shape and all(0 < s < 2 ** 31 for s in shape):
         try:
+            dt = cook_dtype(dtype)
+            arr = prog.create_ndarray(dt, shape, layout=Layout.NULL, zero_fill=False, dbg_info=_ti_core.DebugInfo(""))
+        except (AttributeError, TypeError):
+            arr = None
+        if arr is not None:  # the Python object ti.ndarray wraps around it (ScalarNdarray.__init__'s fields)
             nd = ScalarNdarray.__new__(ScalarNdarray)
             Ndarray.__init__(nd)
-            nd.dtype = nd.element_type = cook_dtype(dtype)
-            nd.arr = prog.create_ndarray(nd.dtype, shape, layout=Layout.NULL, zero_fill=False,
-                                         dbg_info=_ti_core.DebugInfo(""))
-            nd.shape = tuple(nd.arr.shape)
+            nd.dtype = nd.element_type = dt
+            nd.arr, nd.shape = arr, tuple(arr.shape)
             return nd
-        except (AttributeError, TypeError):
-            pass
     return ti.ndarray(dtype, shape)

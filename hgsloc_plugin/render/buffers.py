@@ -13,11 +13,12 @@ import taichi as ti
 
 from ..kernels import window_grad
 from ..kernels.footprint import RECT_SIZE
-from ..kernels.launch import empty, launcher, upload
+from ..kernels.launch import launcher, upload
 from ..kernels.layout import Cam, Rec
 from ..kernels.pose_grad import NDER, NXI
 from ..kernels.radix import DIGITS, MAX_BLOCKS
 from ..kernels.readback import readback_kernel
+from .prepare import upload as upload_array
 
 logger = logging.getLogger("hgsloc_plugin.render")
 
@@ -264,8 +265,7 @@ class Pool:
         if nd is None:
             if len(self.query_indices) >= 64:
                 self.query_indices.clear()
-            nd = self.query_indices[key] = empty(ti.i32, (max(1, index.size),))
-            upload(nd, index if index.size else np.zeros(1, np.int32))
+            nd = self.query_indices[key] = upload_array(index if index.size else np.zeros(1, np.int32), ti.i32)
         return nd
 
     def grown(self, cur, batch: int, n: int):

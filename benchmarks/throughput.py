@@ -129,7 +129,8 @@ def case_errors(case: str, qs, poses: list[hp.Pose]) -> np.ndarray:
     """[n, 2]: each pose's error to its query's truth (``qs``: ``load``'s), the centre in % of the query's median
     depth (cm on the room) and the rotation in degrees."""
     scale = [(100.0 if is_metric(case) else 100.0 / d) for _, _, _, d in qs]
-    return np.array([[p.errors_to(g)[0] * s, p.errors_to(g)[1]] for (_, g, _, _), p, s in zip(qs, poses, scale)])
+    errors = [p.errors_to(g) for (_, g, _, _), p in zip(qs, poses)]
+    return np.array([[t * s, r] for (t, r), s in zip(errors, scale)])
 
 
 def same_poses(first: list, others: list[list]) -> bool:

@@ -11,7 +11,7 @@ is taken as 0.
   the entries whose pixel mask (``pose_grad.pixel_masks``) leaves it out.
 - ``splat_grad`` (the CPU layout, ``RasterConfig.blend`` "splat"): one task per tile, each Gaussian of its list
   loading its record and derivatives once and visiting only the pixels of its alpha ellipse, as
-  the image's splat blend does (``blend.splat_walk``).
+  the image's splat blend does (``splat.splat_walk``).
 Reference twin: ``tests/test_pose_grad.py`` (finite differences of ``tests/reference/render_torch.py`` in
 float64; the two layouts against each other).
 """
@@ -20,11 +20,12 @@ import functools
 
 import taichi as ti
 
-from .blend import colour_of, splat_walk, tile_range
+from .blend import colour_of, tile_range
 from .config import RasterConfig
 from .footprint import SIGMA_MARGIN
 from .grain import item, spread
 from .layout import Rec
+from .splat import splat_walk
 
 NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in the records' derivatives (times NXI)
@@ -153,7 +154,7 @@ def _add_colour_and_derivatives(acc: ti.template(), p, col, D, alpha, capped, T,
 @functools.cache
 def splat_grad_func(config: RasterConfig):
     """``splat_grad`` (a ti.func: one task per pose and tile, the CPU layout): the outputs of ``blend_grad``, with
-    the same arguments (``masks`` unread). ``blend.splat_walk`` with the derivative terms: each Gaussian of the
+    the same arguments (``masks`` unread). ``splat.splat_walk`` with the derivative terms: each Gaussian of the
     tile's list (depth order) loads its record and derivatives once and visits only the pixels of its alpha ellipse;
     the pixels' accumulators (``NACC``) live in a local array. Per pixel the Gaussians and their order are
     ``blend_grad``'s, so colour and alpha equal it bit for bit and the derivatives to float32 rounding (the compiler

@@ -32,13 +32,14 @@ import functools
 
 import taichi as ti
 
-from .blend import ellipse_of, tile_pixels, tile_range
+from .blend import tile_range
 from .blend_grad import DCA, DCB, DCC, DX, DY, NXI, blend_grad_func, splat_grad_func
 from .config import RasterConfig
 from .footprint import PIXEL_MARGIN, SIGMA_MARGIN
 from .grain import item, spread
 from .layout import Cam
 from .projection import camera_covariance, clamped_jacobian, view_rt
+from .splat import ellipse_of, tile_pixels
 
 NDER = 5 * NXI
 MASK_BITS = 64  # pixels of a tile a ``pixel_masks`` entry can describe (tiles of at most 8 x 8)

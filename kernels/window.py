@@ -27,8 +27,9 @@ import math
 
 import taichi as ti
 
-from .blend import image_func, reduce_rows, splat_image_func
+from .blend import image_func, reduce_rows
 from .grain import item, spread
+from .splat import splat_image_func
 
 SIGMA = 1.5
 RADIUS = 5
@@ -177,7 +178,7 @@ def _vertical_cost(with_luminance: bool):
 @functools.cache
 def window_cost_kernel(config, splat: bool, with_luminance: bool):
     """B poses' windowed similarity in one launch, after their projection and tile sort: the image blend
-    (``blend.splat_image_func`` or ``blend.image_func``, its arguments first) into rgb [B, H, W, 3], alpha and
+    (``splat.splat_image_func`` or ``blend.image_func``, its arguments first) into rgb [B, H, W, 3], alpha and
     depth [B, H, W], the horizontal pass into hbuf [B, H, W, 3, 3], the vertical pass's per-row sums into rows
     [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64 (sum of the per-pixel values, valid
     pixels; a host array: no read-back launch)."""

@@ -15,8 +15,8 @@ import taichi as ti
 
 from ..backend import current_arch
 from ..camera import Camera, pose_cameras, size_camera
-from ..kernels import RasterConfig, cull, window
-from ..kernels.blend import cost_kernel, image_kernel, reduce_kernel, splat_cost_kernel
+from ..kernels import RasterConfig, cull, splat, window
+from ..kernels.blend import cost_kernel, image_func, image_kernel, reduce_kernel
 from ..kernels.footprint import uses_ellipse_tiles
 from ..kernels.launch import empty, launcher
 from ..kernels.layout import Stat
@@ -60,7 +60,7 @@ class Renderer:
         self._sort = launcher(tile_sort_kernel(self.config, ellipse))
         auto_blend = "pixel" if current_arch() == "cuda" else "splat"
         self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
-        self._blend_cost = launcher(splat_cost_kernel(self.config) if mode == "splat" else cost_kernel(self.config))
+        self._blend_cost = launcher((splat.splat_cost_kernel if mode == "splat" else cost_kernel)(self.config))
         self._reduce = launcher(reduce_kernel())
         self.grad_masks = uses_masks(self.config, current_arch(), mode == "splat")  # the derivative pass's masks
         self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
@@ -82,8 +82,7 @@ class Renderer:
         """A renderer of other Gaussians with this one's config, compiled kernels and pool."""
         other = object.__new__(Renderer)
         other.__dict__.update(self.__dict__)
-        other.gaussians = gaussians
-        other._root = other._root_index = None
+        other.gaussians, other._root, other._root_index = gaussians, None, None
         return other
 
     @property
@@ -278,7 +277,8 @@ class Renderer:
         for cams, part in self._chunks(camera, poses):
             ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
-            launcher(image_kernel(self.config, self.blend_mode == "splat"))(*head, im.rgb, im.alpha, im.dimg)
+            blend = (splat.splat_image_func if self.blend_mode == "splat" else image_func)(self.config)
+            launcher(image_kernel(blend))(*head, im.rgb, im.alpha, im.dimg)
             n = len(part)
             rgbs.append(read_rows(im.rgb, n))
             alphas.append(read_rows(im.alpha, n))

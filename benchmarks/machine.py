@@ -113,12 +113,13 @@ def before_args(ap: argparse.ArgumentParser, child: Callable[[argparse.Namespace
     return a, before
 
 
-def write_before_table(out: Path, title: str, script: str, setup: str, rows: list[str]) -> None:
+def write_before_table(out: Path, title: str, script: str, setup: str, rows: list[str], args: str = "") -> None:
     """Write a ``--before`` benchmark's table to ``out`` (its notes kept, ``real_photos.write_keeping_notes``):
-    the heading ``title`` of ``benchmarks/<script>``, the command that regenerates it, the ``setup`` line, the
-    table's ``rows``."""
+    the heading ``title`` of ``benchmarks/<script>``, the command that regenerates it (with ``args``, the run's
+    own options), the ``setup`` line, the table's ``rows``."""
     from real_photos import write_keeping_notes
 
     write_keeping_notes(out, [f"# {title} (`benchmarks/{script}`)", "",
-                              f"Regenerate: `python benchmarks/{script} --before DIR --out {out}`",
+                              f"Regenerate: `python benchmarks/{script} --before DIR {args + ' ' if args else ''}"
+                              f"--out {out}`",
                               "(DIR: the checkout before the change, see the script).", "", setup, "", *rows])

@@ -103,7 +103,9 @@ def main() -> None:
     if a.out:
         write_before_table(a.out, "Per-query time against another checkout", "query_time.py",
                            f"Backend cpu; priors 2 % of the depth / 1 deg, seeds {' '.join(map(str, a.seeds))}; "
-                           f"{a.rounds} processes per side and case, alternating.", rows)
+                           f"{a.rounds} processes per side and case, alternating.", rows,
+                           args=f"--cases {' '.join(a.cases)} --seeds {' '.join(map(str, a.seeds))} "
+                                f"--rounds {a.rounds}")
 
 
 if __name__ == "__main__":

@@ -157,8 +157,8 @@ def splat_grad_func(config: RasterConfig):
     the same arguments (``masks`` unread). ``splat.splat_walk`` with the derivative terms: each Gaussian of the
     tile's list (depth order) loads its record and derivatives once and visits only the pixels of its alpha ellipse;
     the pixels' accumulators (``NACC``) live in a local array. Per pixel the Gaussians and their order are
-    ``blend_grad``'s, so colour and alpha equal it bit for bit and the derivatives to float32 rounding (the compiler
-    may fuse their multiply-adds differently)."""
+    ``blend_grad``'s, so colour, alpha and derivatives equal it to float32 rounding (the alphas along a row come
+    from ``splat.row_factors``' recurrence; the compiler may fuse the multiply-adds differently)."""
     tile = config.grad_tile_size
     walk = splat_walk(config, tile, NACC, _colour_and_derivatives, _add_colour_and_derivatives)
 

@@ -1,8 +1,8 @@
 """The tile-parallel blends (``RasterConfig.blend`` "splat", the CPU's layout): one task per pose and tile, each
 Gaussian of the tile's depth-ordered list touching only the pixels its alpha ellipse reaches (``splat_walk``), with
 the image's and the fused cost's outputs of ``blend.py``'s per-pixel kernels (``splat_image_func``,
-``splat_cost_kernel``); ``blend_grad.splat_grad`` runs the same walk with the pose derivatives. Each pixel's
-arithmetic is ``blend.shade``'s, so both layouts give the same numbers.
+``splat_cost_kernel``); ``blend_grad.splat_grad`` runs the same walk with the pose derivatives. Along each row the
+alphas come from a recurrence (``row_factors``), equal to ``blend.shade``'s exponentials to float32 rounding.
 Reference twins: ``tests/test_render.py`` (against the per-pixel layout), ``tests/test_pose_grad.py``.
 """
 
@@ -14,6 +14,10 @@ from .blend import NSTAT, accumulate_stats, colour_of, tile_range
 from .config import RasterConfig
 from .grain import item, spread
 from .layout import Rec
+
+#: ``splat_walk`` takes a pixel's exponential itself where the row's recurrence lands within this fraction of
+#: ``alpha_min`` or ``alpha_max`` (its rounding is a few 1e-7): the thresholds decide as in ``shade``
+NEAR = 1e-5
 
 
 @ti.func
@@ -65,14 +69,31 @@ def row_span(mx, my, ca, cb, cc, lim, inv_ca, py, x0, x1):
     return dy, lx, hx
 
 
+@ti.func
+def row_factors(op, mx, ca, cb, cc, dy, lx, hx):
+    """(raw, factor): ``op * exp(-sigma)`` at pixel ``lx`` of a row at offset ``dy`` from a Gaussian's centre (mean
+    x ``mx``, conic ca, cb, cc), and the factor to the next pixel's. Along a row ``dx`` falls by 1 a pixel, so
+    ``sigma(dx - 1) - sigma(dx) = ca (0.5 - dx) - cb dy`` rises by ``ca`` a pixel: each pixel's value is the last
+    one's times ``factor``, which itself is multiplied by ``exp(-ca)`` a pixel (1 for a row of one pixel, where
+    it is not needed). Equal to an exponential per pixel to float32 rounding (a few ulps over a tile's row)."""
+    dx = mx - (ti.cast(lx, ti.f32) + 0.5)
+    raw = op * ti.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
+    factor = 1.0
+    if hx - lx > 1:
+        factor = ti.exp(-(ca * (0.5 - dx) - cb * dy))
+    return raw, factor
+
+
 def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
     """The per-tile splatting loop of the tile-parallel blends (image and pose derivatives): the Gaussians of a
     tile's list in depth order, each touching only the pixels where its alpha can reach ``alpha_min`` (the exact
     ellipse per row, clipped to its box), with the tests and transmittance of ``shade``.
 
-    Per pixel the same Gaussians are blended in the same order and with the same arithmetic as ``shade`` (a pixel
-    outside a Gaussian's ellipse has alpha < alpha_min there, so skipping it changes nothing), so the result equals
-    the per-pixel kernel's; the work is proportional to the footprints instead of tile area x list length. The
+    Per pixel the same Gaussians are blended in the same order and with the tests of ``shade`` (a pixel outside a
+    Gaussian's ellipse has alpha < alpha_min there, so skipping it changes nothing); the alphas along a row come
+    from a recurrence (:func:`row_factors`: two exponentials a row instead of one a pixel) and equal ``shade``'s to
+    float32 rounding, the thresholds deciding on ``shade``'s own exponential (``NEAR``), so the result equals the
+    per-pixel kernel's to rounding; the work is proportional to the footprints instead of tile area x list length. The
     tile's accumulators live in a local array [tile * tile, nacc] (row-major within the tile): field 0 the
     transmittance (a finished pixel stores -T), the others the caller's. Two ti.funcs fill them:
     ``gaussian(packed, aux, b, g)`` -> (colour [3], extra): what a Gaussian's contributions need, loaded once per
@@ -103,20 +124,27 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
             op = packed[b, g, Rec.OPACITY]
             ly, hy = rows_reached(my, packed[b, g, Rec.RY], y0, y1)
             inv_ca = 1.0 / ca
+            decay = -1.0  # exp(-ca), made once a row of three or more pixels needs it
             col, extra = gaussian(packed, aux, b, g)
             for py in range(ly, hy):
                 if row_left[py - y0] == 0:
                     continue
                 dy, lx, hx = row_span(mx, my, ca, cb, cc, lim, inv_ca, py, x0, x1)
                 row = (py - y0) * tile - x0
+                # opacity * exp(-sigma) along the row by recurrence (row_factors): two exponentials a row
+                raw, factor = row_factors(op, mx, ca, cb, cc, dy, lx, hx)
+                if hx - lx > 2 and decay < 0.0:
+                    decay = ti.exp(-ca)
                 for px in range(lx, hx):
                     p = row + px
                     T = acc[p, 0]
                     if T > 0.0:
                         dx = mx - (ti.cast(px, ti.f32) + 0.5)
                         sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                        raw = op * ti.exp(-sigma)
-                        alpha = ti.min(alpha_max, raw)
+                        val = raw
+                        if ti.abs(val - alpha_min) <= NEAR * alpha_min or ti.abs(val - alpha_max) <= NEAR * alpha_max:
+                            val = op * ti.exp(-sigma)  # at a threshold: decided on shade's own exponential
+                        alpha = ti.min(alpha_max, val)
                         if sigma >= 0.0 and alpha >= alpha_min:
                             next_T = T * (1.0 - alpha)
                             if next_T <= t_eps:
@@ -124,8 +152,10 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
                                 ndone += 1
                                 row_left[py - y0] -= 1
                             else:
-                                pixel(acc, p, col, extra, alpha, raw >= alpha_max, T, dx, dy, ca, cb, cc)
+                                pixel(acc, p, col, extra, alpha, val >= alpha_max, T, dx, dy, ca, cb, cc)
                                 acc[p, 0] = next_T
+                    raw *= factor  # the next pixel's (a row's last products, unused, may take decay's -1)
+                    factor *= decay
         return acc, x0, y0
 
     return walk

@@ -1,17 +1,18 @@
-"""Derivative blending: the colour, alpha and pose derivatives of each pixel, in two layouts with one arithmetic.
+"""Derivative blending: the colour, alpha and pose derivatives of each pixel, in two layouts.
 
-Front-to-back compositing (the arithmetic of ``blend.shade``, so colour and alpha equal the image kernel's)
-carrying the derivatives in the pose increment ``xi`` [6] (``pose_grad``): per contributing Gaussian
-``dsigma`` from its record's derivatives, ``dalpha = -alpha dsigma`` (0 where alpha is capped at ``alpha_max``),
-``dC += c (dalpha T + alpha dT)``, ``dT' = dT (1 - alpha) - T dalpha`` (:func:`chain_step`); output ``drgb = dC +
-dT background`` [B, H, W, 3 * 6]. The alpha threshold and the early stop are discontinuities; their derivative
-is taken as 0.
+Front-to-back compositing (the tests of ``blend.shade``, so colour and alpha equal the image kernels') carrying
+the derivatives in the pose increment ``xi`` [6] (``pose_grad``): per contributing Gaussian ``dsigma`` from its
+record's derivatives, ``dalpha = -alpha dsigma`` (0 where alpha is capped at ``alpha_max``), ``dC += c (dalpha T +
+alpha dT)``, ``dT' = dT (1 - alpha) - T dalpha`` (:func:`chain_step`); output ``drgb = dC + dT background``
+[B, H, W, 3 * 6]. The alpha threshold and the early stop are discontinuities; their derivative is taken as 0.
 
 - ``blend_grad`` (the GPU layout): one task per pixel walks its tile's depth-ordered list, optionally skipping
-  the entries whose pixel mask (``pose_grad.pixel_masks``) leaves it out.
+  the entries whose pixel mask (``pose_grad.pixel_masks``) leaves it out; :func:`chain_step` as written.
 - ``splat_grad`` (the CPU layout, ``RasterConfig.blend`` "splat"): one task per tile, each Gaussian of its list
-  loading its record and derivatives once and visiting only the pixels of its alpha ellipse, as
-  the image's splat blend does (``splat.splat_walk``).
+  loading its record and derivatives once and visiting only the pixels of its alpha ellipse, as the image's splat
+  blend does (``splat.splat_walk``); the same chain in fewer operations: ``dsigma`` from a quadratic in the
+  pixel's column set up once a row (:func:`_row_derivatives`) and the transmittance's relative derivative
+  ``u = dT / T`` (:func:`_add_colour_and_derivatives`). The two agree to float32 rounding.
 Reference twin: ``tests/test_pose_grad.py`` (finite differences of ``tests/reference/render_torch.py`` in
 float64; the two layouts against each other).
 """
@@ -29,8 +30,8 @@ from .splat import splat_walk
 
 NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in the records' derivatives (times NXI)
-NACC = 4 + 4 * NXI  # a splat_grad pixel's accumulators: T, colour [3], dT [6], dC [3, 6] (channel-major)
-ACC_DT, ACC_DC = 4, 4 + NXI  # their fields
+NACC = 4 + 4 * NXI  # a splat_grad pixel's accumulators: T, colour [3], u = dT / T [6], dC [3, 6] (channel-major)
+ACC_U, ACC_DC = 4, 4 + NXI  # their fields
 
 
 @ti.func
@@ -132,23 +133,52 @@ def blend_grad_func(config: RasterConfig, masked: bool):
 
 @ti.func
 def _colour_and_derivatives(packed: ti.template(), dpacked: ti.template(), b, g):
-    """The derivative blend's per-Gaussian terms: colour [3] and its record's derivatives D [5, 6]."""
-    return colour_of(packed, b, g), record_derivatives(dpacked, b, g)
+    """The derivative blend's per-Gaussian terms: colour [3] and G [5, 6], its record's derivatives D regrouped
+    for :func:`_row_derivatives` (conic ca, cb, cc): ``ca Dx + cb Dy``, ``cb Dx + cc Dy``, ``Dcc / 2``, ``Dcb``,
+    ``Dca / 2``."""
+    D = record_derivatives(dpacked, b, g)
+    ca, cb, cc = packed[b, g, Rec.CA], packed[b, g, Rec.CB], packed[b, g, Rec.CC]
+    G = ti.Matrix.zero(ti.f32, 5, NXI)
+    for j in ti.static(range(NXI)):
+        G[0, j] = ca * D[DX, j] + cb * D[DY, j]
+        G[1, j] = cb * D[DX, j] + cc * D[DY, j]
+        G[2, j] = 0.5 * D[DCC, j]
+        G[3, j] = D[DCB, j]
+        G[4, j] = 0.5 * D[DCA, j]
+    return colour_of(packed, b, g), G
 
 
 @ti.func
-def _add_colour_and_derivatives(acc: ti.template(), p, col, D, alpha, capped, T, dx, dy, ca, cb, cc):
-    """The derivative blend's pixel terms (accumulators ``NACC``: T, colour [3], dT [6], dC [3, 6]): the colour as
-    the image's, the derivatives by :func:`chain_step`."""
+def _row_derivatives(G, dy):
+    """P [3, 6]: a Gaussian's sigma derivatives along a row at offset ``dy``, a quadratic in the pixel's ``dx``:
+    ``dsigma = (ca dx + cb dy) Dx + (cc dy + cb dx) Dy + dx^2 Dca / 2 + dx dy Dcb + dy^2 Dcc / 2
+    = P[0] + dx P[1] + dx^2 P[2]`` (G from :func:`_colour_and_derivatives`)."""
+    P = ti.Matrix.zero(ti.f32, 3, NXI)
+    for j in ti.static(range(NXI)):
+        P[0, j] = dy * (G[1, j] + dy * G[2, j])
+        P[1, j] = G[0, j] + dy * G[3, j]
+        P[2, j] = G[4, j]
+    return P
+
+
+@ti.func
+def _add_colour_and_derivatives(acc: ti.template(), p, col, P, alpha, capped, T, dx, dy, ca, cb, cc):
+    """The derivative blend's pixel terms (accumulators ``NACC``: T, colour [3], u = dT / T [6], dC [3, 6]): the
+    colour as the image's; the derivatives as :func:`chain_step`'s, carrying the transmittance's relative
+    derivative ``u`` (``u' = u - dalpha / (1 - alpha)``, ``dC += T col (dalpha + alpha u)``: fewer operations a
+    Gaussian) and ``dsigma`` from the row's quadratic P (:func:`_row_derivatives`)."""
     for c in ti.static(range(3)):
         acc[p, 1 + c] += alpha * T * col[c]
-    dT = ti.Vector([acc[p, ACC_DT + j] for j in ti.static(range(NXI))])
-    dC = ti.Matrix([[acc[p, ACC_DC + c * NXI + j] for j in ti.static(range(NXI))] for c in ti.static(range(3))])
-    dT, dC = chain_step(alpha, capped, T, dx, dy, ca, cb, cc, col, D, dT, dC)
+    na = 0.0 if capped else -alpha  # d alpha = -alpha d sigma (0 where alpha is capped)
+    r = -1.0 / (1.0 - alpha)
+    tc = T * col
     for j in ti.static(range(NXI)):
-        acc[p, ACC_DT + j] = dT[j]
+        dal = na * (P[0, j] + dx * (P[1, j] + dx * P[2, j]))
+        u = acc[p, ACC_U + j]
+        t = dal + alpha * u
         for c in ti.static(range(3)):
-            acc[p, ACC_DC + c * NXI + j] = dC[c, j]
+            acc[p, ACC_DC + c * NXI + j] += t * tc[c]
+        acc[p, ACC_U + j] = u + dal * r
 
 
 @functools.cache
@@ -160,7 +190,7 @@ def splat_grad_func(config: RasterConfig):
     ``blend_grad``'s, so colour, alpha and derivatives equal it to float32 rounding (the alphas along a row come
     from ``splat.row_factors``' recurrence; the compiler may fuse the multiply-adds differently)."""
     tile = config.grad_tile_size
-    walk = splat_walk(config, tile, NACC, _colour_and_derivatives, _add_colour_and_derivatives)
+    walk = splat_walk(config, tile, NACC, _colour_and_derivatives, _add_colour_and_derivatives, _row_derivatives)
 
     @ti.func
     def splat_grad(
@@ -193,7 +223,7 @@ def splat_grad_func(config: RasterConfig):
                         for c in ti.static(range(3)):
                             out_rgb[b, py, px, c] = acc[p, 1 + c] + T * background[c]
                             for j in ti.static(range(NXI)):
-                                dtj = acc[p, ACC_DT + j]
+                                dtj = T * acc[p, ACC_U + j]  # dT = T u
                                 out_d[b, py, px, c * NXI + j] = acc[p, ACC_DC + c * NXI + j] + dtj * background[c]
                         out_alpha[b, py, px] = 1.0 - T
 

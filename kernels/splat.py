@@ -16,7 +16,7 @@ from .grain import item, spread
 from .layout import Rec
 
 #: ``splat_walk`` takes a pixel's exponential itself where the row's recurrence lands within this fraction of
-#: ``alpha_min`` or ``alpha_max`` (its rounding is a few 1e-7): the thresholds decide as in ``shade``
+#: ``alpha_min`` or ``alpha_max`` (its rounding is a few 1e-7): the thresholds decide on ``shade``'s formula
 NEAR = 1e-5
 
 
@@ -84,7 +84,13 @@ def row_factors(op, mx, ca, cb, cc, dy, lx, hx):
     return raw, factor
 
 
-def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
+@ti.func
+def _same_terms(extra, dy):
+    """``splat_walk``'s default row terms: the Gaussian's own."""
+    return extra
+
+
+def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=None):
     """The per-tile splatting loop of the tile-parallel blends (image and pose derivatives): the Gaussians of a
     tile's list in depth order, each touching only the pixels where its alpha can reach ``alpha_min`` (the exact
     ellipse per row, clipped to its box), with the tests and transmittance of ``shade``.
@@ -92,19 +98,22 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
     Per pixel the same Gaussians are blended in the same order and with the tests of ``shade`` (a pixel outside a
     Gaussian's ellipse has alpha < alpha_min there, so skipping it changes nothing); the alphas along a row come
     from a recurrence (:func:`row_factors`: two exponentials a row instead of one a pixel) and equal ``shade``'s to
-    float32 rounding, the thresholds deciding on ``shade``'s own exponential (``NEAR``), so the result equals the
-    per-pixel kernel's to rounding; the work is proportional to the footprints instead of tile area x list length. The
+    float32 rounding, the thresholds deciding on ``shade``'s formula (``NEAR``), so the result equals the per-pixel
+    kernel's to rounding (but where a Gaussian's alpha is ``alpha_min`` to the last bit, which one kernel may blend
+    and the other not); the work is proportional to the footprints instead of tile area x list length. The
     tile's accumulators live in a local array [tile * tile, nacc] (row-major within the tile): field 0 the
-    transmittance (a finished pixel stores -T), the others the caller's. Two ti.funcs fill them:
+    transmittance (a finished pixel stores -T), the others the caller's. The caller's ti.funcs fill them:
     ``gaussian(packed, aux, b, g)`` -> (colour [3], extra): what a Gaussian's contributions need, loaded once per
-    tile (``aux``: any template the caller passes through); ``pixel(acc, p, colour, extra, alpha, capped, T, dx, dy,
-    ca, cb, cc)`` adds one contributing Gaussian's terms to pixel ``p`` (``capped``: alpha is ``alpha_max``; T the
-    transmittance before it; dx, dy its mean minus the pixel centre; ca, cb, cc its conic).
+    tile (``aux``: any template the caller passes through); ``row(extra, dy)`` -> terms: what they need along one
+    row (None: ``extra`` itself); ``pixel(acc, p, colour, terms, alpha, capped, T, dx, dy, ca, cb, cc)`` adds one
+    contributing Gaussian's terms to pixel ``p`` (``capped``: alpha is ``alpha_max``; T the transmittance before
+    it; dx, dy its mean minus the pixel centre; ca, cb, cc its conic).
     Returns ``walk(b, t, tiles_x, W, H, packed, aux, tile_start, isect, isect_base)`` -> (acc, x0, y0): tile ``t``
     of pose ``b`` and its first pixel.
     """
     alpha_max, alpha_min, t_eps = config.alpha_max, config.alpha_min, config.t_eps
     npx = tile * tile
+    row_terms = row or _same_terms
 
     @ti.func
     def walk(b, t, tiles_x, W, H, packed: ti.template(), aux: ti.template(), tile_start: ti.template(),
@@ -130,13 +139,14 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
                 if row_left[py - y0] == 0:
                     continue
                 dy, lx, hx = row_span(mx, my, ca, cb, cc, lim, inv_ca, py, x0, x1)
-                row = (py - y0) * tile - x0
+                base = (py - y0) * tile - x0
+                terms = row_terms(extra, dy)
                 # opacity * exp(-sigma) along the row by recurrence (row_factors): two exponentials a row
                 raw, factor = row_factors(op, mx, ca, cb, cc, dy, lx, hx)
                 if hx - lx > 2 and decay < 0.0:
                     decay = ti.exp(-ca)
                 for px in range(lx, hx):
-                    p = row + px
+                    p = base + px
                     T = acc[p, 0]
                     if T > 0.0:
                         dx = mx - (ti.cast(px, ti.f32) + 0.5)
@@ -152,7 +162,7 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel):
                                 ndone += 1
                                 row_left[py - y0] -= 1
                             else:
-                                pixel(acc, p, col, extra, alpha, val >= alpha_max, T, dx, dy, ca, cb, cc)
+                                pixel(acc, p, col, terms, alpha, val >= alpha_max, T, dx, dy, ca, cb, cc)
                                 acc[p, 0] = next_T
                     raw *= factor  # the next pixel's (a row's last products, unused, may take decay's -1)
                     factor *= decay

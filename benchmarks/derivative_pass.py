@@ -10,7 +10,8 @@ derivative blend (``RasterConfig.blend`` "splat", the CPU's default), the per-pi
 (``grad_masks`` "on", the CPU's layout before it) and without them ("off", CUDA's default), each the median of
 ``--repeats`` calls made in turn on poses about one pixel around the true one; the passes in render-times (over
 the plain render at the same size); and how far the tile layout's derivatives are from the per-pixel one's
-(largest difference over the largest derivative; colour and alpha must agree within 1e-5, float32 rounding).
+(largest difference over the largest derivative; colour and alpha must agree within 1e-5, float32 rounding, but
+for at most 1 in 10,000 values: ``tests/test_pose_grad.py::assert_same_to_rounding``).
 """
 
 from __future__ import annotations
@@ -91,8 +92,10 @@ def size_row(case: str, renderers, cam: hp.Camera, image: np.ndarray, poses: lis
     rs = dict(zip(LAYOUTS, renderers))
     q = {k: r.upload_window_query(img) for k, r in rs.items()}
     (rgb, alpha, d), (rgb2, alpha2, d2) = (rs[k].render_derivatives(cam, poses[:3], bg) for k in ("tiles", "pixels"))
-    if not max(np.abs(rgb - rgb2).max(), np.abs(alpha - alpha2).max()) <= 1e-5:  # rounding: splat.row_factors
-        raise SystemExit(f"{case} {cam.width}x{cam.height}: the two layouts render different images")
+    for x, y in ((rgb, rgb2), (alpha, alpha2)):  # to rounding, but where an alpha is alpha_min to the last bit
+        off = np.abs(x - y)
+        if not (off.max() <= 2 * hp.RasterConfig().alpha_min and (off > 1e-5).mean() <= 1e-4):
+            raise SystemExit(f"{case} {cam.width}x{cam.height}: the two layouts render different images")
     apart = float(np.abs(d - d2).max() / np.abs(d2).max())
     calls = {k: (lambda p, r=r, k=k: r.pose_gradient(cam, [p], q[k], bg)) for k, r in rs.items()}
     unit = rs["tiles" if hp.init() == "cpu" else "pixels"]  # the render in the backend's default layout

@@ -139,6 +139,8 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=
                 if row_left[py - y0] == 0:
                     continue
                 dy, lx, hx = row_span(mx, my, ca, cb, cc, lim, inv_ca, py, x0, x1)
+                if hx <= lx:
+                    continue  # the ellipse misses this row's pixels of the tile
                 base = (py - y0) * tile - x0
                 terms = row_terms(extra, dy)
                 # opacity * exp(-sigma) along the row by recurrence (row_factors): two exponentials a row

@@ -60,7 +60,8 @@ class Renderer:
         self._sort = launcher(tile_sort_kernel(self.config, ellipse))
         auto_blend = "pixel" if current_arch() == "cuda" else "splat"
         self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
-        self._blend_cost = launcher((splat.splat_cost_kernel if mode == "splat" else cost_kernel)(self.config))
+        cost, img = (splat.splat_cost_kernel, splat.splat_image_func) if mode == "splat" else (cost_kernel, image_func)
+        self._blend_cost, self._blend_image = launcher(cost(self.config)), launcher(image_kernel(img(self.config)))
         self._reduce = launcher(reduce_kernel())
         self.grad_masks = uses_masks(self.config, current_arch(), mode == "splat")  # the derivative pass's masks
         self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
@@ -277,8 +278,7 @@ class Renderer:
         for cams, part in self._chunks(camera, poses):
             ws, head = self._images_ready(cams, part, background, min(len(poses), self.chunk))
             im = ws.images
-            blend = (splat.splat_image_func if self.blend_mode == "splat" else image_func)(self.config)
-            launcher(image_kernel(blend))(*head, im.rgb, im.alpha, im.dimg)
+            self._blend_image(*head, im.rgb, im.alpha, im.dimg)
             n = len(part)
             rgbs.append(read_rows(im.rgb, n))
             alphas.append(read_rows(im.alpha, n))

@@ -30,8 +30,6 @@ from .splat import splat_walk
 
 NXI = 6  # pose parameters
 DX, DY, DCA, DCB, DCC = 0, 1, 2, 3, 4  # quantity index in the records' derivatives (times NXI)
-NACC = 4 + 4 * NXI  # a splat_grad pixel's accumulators: T, colour [3], u = dT / T [6], dC [3, 6] (channel-major)
-ACC_U, ACC_DC = 4, 4 + NXI  # their fields
 
 
 @ti.func
@@ -163,22 +161,22 @@ def _row_derivatives(G, dy):
 
 @ti.func
 def _add_colour_and_derivatives(acc: ti.template(), p, col, P, alpha, capped, T, dx, dy, ca, cb, cc):
-    """The derivative blend's pixel terms (accumulators ``NACC``: T, colour [3], u = dT / T [6], dC [3, 6]): the
-    colour as the image's; the derivatives as :func:`chain_step`'s, carrying the transmittance's relative
-    derivative ``u`` (``u' = u - dalpha / (1 - alpha)``, ``dC += T col (dalpha + alpha u)``: fewer operations a
-    Gaussian) and ``dsigma`` from the row's quadratic P (:func:`_row_derivatives`)."""
+    """The derivative blend's pixel terms (accumulators ``acc``: T [npx], (colour [3], u = dT / T [6]) [npx, 9],
+    dC [npx, 3 * 6] channel-major): the colour as the image's; the derivatives as :func:`chain_step`'s, carrying the
+    transmittance's relative derivative ``u`` (``u' = u - dalpha / (1 - alpha)``, ``dC += T col (dalpha + alpha
+    u)``: fewer operations a Gaussian) and ``dsigma`` from the row's quadratic P (:func:`_row_derivatives`)."""
     for c in ti.static(range(3)):
-        acc[p, 1 + c] += alpha * T * col[c]
+        acc[1][p, c] += alpha * T * col[c]
     na = 0.0 if capped else -alpha  # d alpha = -alpha d sigma (0 where alpha is capped)
     r = -1.0 / (1.0 - alpha)
     tc = T * col
     for j in ti.static(range(NXI)):
         dal = na * (P[0, j] + dx * (P[1, j] + dx * P[2, j]))
-        u = acc[p, ACC_U + j]
+        u = acc[1][p, 3 + j]
         t = dal + alpha * u
         for c in ti.static(range(3)):
-            acc[p, ACC_DC + c * NXI + j] += t * tc[c]
-        acc[p, ACC_U + j] = u + dal * r
+            acc[2][p, c * NXI + j] += t * tc[c]
+        acc[1][p, 3 + j] = u + dal * r
 
 
 @functools.cache
@@ -186,11 +184,12 @@ def splat_grad_func(config: RasterConfig):
     """``splat_grad`` (a ti.func: one task per pose and tile, the CPU layout): the outputs of ``blend_grad``, with
     the same arguments (``masks`` unread). ``splat.splat_walk`` with the derivative terms: each Gaussian of the
     tile's list (depth order) loads its record and derivatives once and visits only the pixels of its alpha ellipse;
-    the pixels' accumulators (``NACC``) live in a local array. Per pixel the Gaussians and their order are
+    the pixels' accumulators live in local arrays (``splat.splat_walk``). Per pixel the Gaussians and their order are
     ``blend_grad``'s, so colour, alpha and derivatives equal it to float32 rounding (the alphas along a row come
     from ``splat.row_factors``' recurrence; the compiler may fuse the multiply-adds differently)."""
     tile = config.grad_tile_size
-    walk = splat_walk(config, tile, NACC, _colour_and_derivatives, _add_colour_and_derivatives, _row_derivatives)
+    walk = splat_walk(config, tile, _colour_and_derivatives, _add_colour_and_derivatives, _row_derivatives)
+    npx, f32 = tile * tile, ti.f32
 
     @ti.func
     def splat_grad(
@@ -215,16 +214,18 @@ def splat_grad_func(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                acc, x0, y0 = walk(b, t, tiles_x, W, H, packed, dpacked, tile_start, isect, isect_base)
+                trans, cu = ti.Vector.zero(f32, npx), ti.Matrix.zero(f32, npx, 3 + NXI)
+                dc = ti.Matrix.zero(f32, npx, 3 * NXI)
+                x0, y0 = walk((trans, cu, dc), b, t, tiles_x, W, H, packed, dpacked, tile_start, isect, isect_base)
                 for py in range(y0, ti.min(y0 + tile, H)):
                     for px in range(x0, ti.min(x0 + tile, W)):
                         p = (py - y0) * tile + (px - x0)
-                        T = ti.abs(acc[p, 0])
+                        T = ti.abs(trans[p])
                         for c in ti.static(range(3)):
-                            out_rgb[b, py, px, c] = acc[p, 1 + c] + T * background[c]
+                            out_rgb[b, py, px, c] = cu[p, c] + T * background[c]
                             for j in ti.static(range(NXI)):
-                                dtj = T * acc[p, ACC_U + j]  # dT = T u
-                                out_d[b, py, px, c * NXI + j] = acc[p, ACC_DC + c * NXI + j] + dtj * background[c]
+                                dtj = T * cu[p, 3 + j]  # dT = T u
+                                out_d[b, py, px, c * NXI + j] = dc[p, c * NXI + j] + dtj * background[c]
                         out_alpha[b, py, px] = 1.0 - T
 
     return splat_grad

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+
+#: the per-pixel derivative blend's tile edge (``RasterConfig.grad_tile_size`` None): 64 pixels, one bit each in a
+#: ``pose_grad.pixel_masks`` entry
+PIXEL_GRAD_TILE = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -11,10 +15,11 @@ class RasterConfig:
 
     Attributes:
         tile_size: tile edge in pixels.
-        grad_tile_size: tile edge of the lists the pose-derivative pass blends (``blend_grad.py``): smaller tiles
-            give shorter lists for the same images and derivatives. The renders keep ``tile_size``. The tile
-            layout keeps a tile's accumulators in a local array: on one CPU thread 8 px compiles in about 7 s,
-            16 px in about a minute.
+        grad_tile_size: tile edge of the lists the pose-derivative pass blends (``blend_grad.py``); None: the
+            blend layout's (:meth:`grad_tile`): ``tile_size`` for the tile-parallel blend, which visits each
+            Gaussian's ellipse pixels only, so that larger tiles only save list entries and row set-ups
+            (``benchmarks/derivative_pass.md``); ``PIXEL_GRAD_TILE`` (8) for the per-pixel blend, whose pixels walk
+            their tile's whole list. The same images and derivatives at any size, to float32 rounding.
         grad_masks: for the per-pixel derivative blend (``blend`` "pixel"): "on": each list entry carries a mask of
             the tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so
             a pixel skips the others on one bit test: the same numbers, less time on the CPU; "off"; "auto" (on
@@ -40,7 +45,7 @@ class RasterConfig:
     """
 
     tile_size: int = 16
-    grad_tile_size: int = 8
+    grad_tile_size: int | None = None
     grad_masks: str = "auto"
     eps2d: float = 0.3
     alpha_max: float = 0.999
@@ -61,7 +66,7 @@ class RasterConfig:
             raise ValueError(f"blend must be 'auto', 'pixel' or 'splat', got {self.blend!r}")
         if self.grad_masks not in ("auto", "on", "off"):
             raise ValueError(f"grad_masks must be 'auto', 'on' or 'off', got {self.grad_masks!r}")
-        if self.grad_masks == "on" and self.grad_tile_size > 8:
+        if self.grad_masks == "on" and self.grad_tile_size is not None and self.grad_tile_size > 8:
             raise ValueError(f"grad_masks='on' needs grad_tile_size <= 8 (64 pixels), got {self.grad_tile_size}")
         if self.sort not in ("auto", "serial", "parallel"):
             raise ValueError(f"sort must be 'auto', 'serial' or 'parallel', got {self.sort!r}")
@@ -69,5 +74,16 @@ class RasterConfig:
             raise ValueError(f"tile_test must be 'auto', 'ellipse' or 'box', got {self.tile_test!r}")
         if not (0 < self.alpha_max <= 1):
             raise ValueError(f"alpha_max must be in (0, 1], got {self.alpha_max}")
-        if self.tile_size <= 0 or self.grad_tile_size <= 0 or self.max_batch_elements <= 0:
+        if self.tile_size <= 0 or (self.grad_tile_size or 1) <= 0 or self.max_batch_elements <= 0:
             raise ValueError("tile_size, grad_tile_size and max_batch_elements must be positive")
+
+    def grad_tile(self, splat: bool) -> int:
+        """The derivative pass's tile edge for the blend layout (``splat``: the tile-parallel one): ``grad_tile_size``,
+        or when None ``tile_size`` (tile-parallel) or ``PIXEL_GRAD_TILE`` (per pixel)."""
+        if self.grad_tile_size is not None:
+            return self.grad_tile_size
+        return self.tile_size if splat else PIXEL_GRAD_TILE
+
+    def for_layout(self, splat: bool) -> RasterConfig:
+        """This config with ``grad_tile_size`` set to :meth:`grad_tile` (what the kernels read)."""
+        return replace(self, grad_tile_size=self.grad_tile(splat))

@@ -52,7 +52,7 @@ def uses_masks(config: RasterConfig, arch: str, splat: bool) -> bool:
     if splat:
         return False
     if config.grad_masks == "auto":
-        return arch != "cuda" and config.grad_tile_size ** 2 <= MASK_BITS
+        return arch != "cuda" and config.grad_tile(False) ** 2 <= MASK_BITS
     return config.grad_masks == "on"
 
 

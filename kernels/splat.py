@@ -90,7 +90,7 @@ def _same_terms(extra, dy):
     return extra
 
 
-def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=None):
+def splat_walk(config: RasterConfig, tile: int, gaussian, pixel, row=None):
     """The per-tile splatting loop of the tile-parallel blends (image and pose derivatives): the Gaussians of a
     tile's list in depth order, each touching only the pixels where its alpha can reach ``alpha_min`` (the exact
     ellipse per row, clipped to its box), with the tests and transmittance of ``shade``.
@@ -101,27 +101,28 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=
     float32 rounding, the thresholds deciding on ``shade``'s formula (``NEAR``), so the result equals the per-pixel
     kernel's to rounding (but where a Gaussian's alpha is ``alpha_min`` to the last bit, which one kernel may blend
     and the other not); the work is proportional to the footprints instead of tile area x list length. The
-    tile's accumulators live in a local array [tile * tile, nacc] (row-major within the tile): field 0 the
-    transmittance (a finished pixel stores -T), the others the caller's. The caller's ti.funcs fill them:
+    tile's accumulators are the caller's zeroed local arrays, passed as a tuple ``acc`` and filled in place (pixels
+    row-major within the tile; a few arrays rather than one: Taichi compiles a 16 px tile's one [256, 28] array in
+    twice the seconds, and a returned array is copied): ``acc[0]`` [tile * tile] the transmittance (set to 1 here;
+    a finished pixel stores -T), the others the callbacks'. The caller's ti.funcs fill them:
     ``gaussian(packed, aux, b, g)`` -> (colour [3], extra): what a Gaussian's contributions need, loaded once per
     tile (``aux``: any template the caller passes through); ``row(extra, dy)`` -> terms: what they need along one
     row (None: ``extra`` itself); ``pixel(acc, p, colour, terms, alpha, capped, T, dx, dy, ca, cb, cc)`` adds one
     contributing Gaussian's terms to pixel ``p`` (``capped``: alpha is ``alpha_max``; T the transmittance before
     it; dx, dy its mean minus the pixel centre; ca, cb, cc its conic).
-    Returns ``walk(b, t, tiles_x, W, H, packed, aux, tile_start, isect, isect_base)`` -> (acc, x0, y0): tile ``t``
-    of pose ``b`` and its first pixel.
+    Returns ``walk(acc, b, t, tiles_x, W, H, packed, aux, tile_start, isect, isect_base)`` -> (x0, y0): tile ``t``
+    of pose ``b`` blended into ``acc``, and its first pixel.
     """
     alpha_max, alpha_min, t_eps = config.alpha_max, config.alpha_min, config.t_eps
     npx = tile * tile
     row_terms = row or _same_terms
 
     @ti.func
-    def walk(b, t, tiles_x, W, H, packed: ti.template(), aux: ti.template(), tile_start: ti.template(),
-             isect: ti.template(), isect_base: ti.template()):
+    def walk(acc: ti.template(), b, t, tiles_x, W, H, packed: ti.template(), aux: ti.template(),
+             tile_start: ti.template(), isect: ti.template(), isect_base: ti.template()):
         x0, y0, x1, y1, row_left = tile_pixels(t, tiles_x, tile, W, H)
-        acc = ti.Matrix.zero(ti.f32, npx, nacc)
         for p in range(npx):
-            acc[p, 0] = 1.0
+            acc[0][p] = 1.0
         npix = (x1 - x0) * (y1 - y0)
         ndone = 0
         start, end = tile_range(b, t, tile_start, isect_base)
@@ -149,7 +150,7 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=
                     decay = ti.exp(-ca)
                 for px in range(lx, hx):
                     p = base + px
-                    T = acc[p, 0]
+                    T = acc[0][p]
                     if T > 0.0:
                         dx = mx - (ti.cast(px, ti.f32) + 0.5)
                         sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -160,15 +161,15 @@ def splat_walk(config: RasterConfig, tile: int, nacc: int, gaussian, pixel, row=
                         if sigma >= 0.0 and alpha >= alpha_min:
                             next_T = T * (1.0 - alpha)
                             if next_T <= t_eps:
-                                acc[p, 0] = -T
+                                acc[0][p] = -T
                                 ndone += 1
                                 row_left[py - y0] -= 1
                             else:
                                 pixel(acc, p, col, terms, alpha, val >= alpha_max, T, dx, dy, ca, cb, cc)
-                                acc[p, 0] = next_T
+                                acc[0][p] = next_T
                     raw *= factor  # the next pixel's (a row's last products, unused, may take decay's -1)
                     factor *= decay
-        return acc, x0, y0
+        return x0, y0
 
     return walk
 
@@ -181,16 +182,16 @@ def _colour_and_depth(packed: ti.template(), aux: ti.template(), b, g):
 
 @ti.func
 def _add_colour_and_depth(acc: ti.template(), p, col, depth, alpha, capped, T, dx, dy, ca, cb, cc):
-    """The image blend's pixel terms: accumulators (T, R, G, B, depth)."""
+    """The image blend's pixel terms: accumulators (T [npx], (R, G, B, depth) [npx, 4])."""
     vis = alpha * T
     for c in ti.static(range(3)):
-        acc[p, 1 + c] += vis * col[c]
-    acc[p, 4] += vis * depth
+        acc[1][p, c] += vis * col[c]
+    acc[1][p, 3] += vis * depth
 
 
 def _make_splat_tile(config: RasterConfig):
-    """``splat_walk`` for the image: accumulators [tile * tile, 5] (T, R, G, B, depth)."""
-    return splat_walk(config, config.tile_size, 5, _colour_and_depth, _add_colour_and_depth)
+    """``splat_walk`` for the image: accumulators (T [tile * tile], (R, G, B, depth) [tile * tile, 4])."""
+    return splat_walk(config, config.tile_size, _colour_and_depth, _add_colour_and_depth)
 
 
 @functools.cache
@@ -210,15 +211,16 @@ def splat_image_func(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                buf, x0, y0 = splat_tile(b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
+                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, 4)
+                x0, y0 = splat_tile((trans, buf), b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
                 for py in range(y0, ti.min(y0 + tile, H)):
                     for px in range(x0, ti.min(x0 + tile, W)):
                         p = (py - y0) * tile + (px - x0)
-                        T = ti.abs(buf[p, 0])
+                        T = ti.abs(trans[p])
                         for c in ti.static(range(3)):
-                            out_rgb[b, py, px, c] = buf[p, 1 + c] + T * background[c]
+                            out_rgb[b, py, px, c] = buf[p, c] + T * background[c]
                         out_alpha[b, py, px] = 1.0 - T
-                        out_depth[b, py, px] = buf[p, 4]
+                        out_depth[b, py, px] = buf[p, 3]
 
     return splat_image
 
@@ -250,15 +252,16 @@ def splat_cost_kernel(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                buf, x0, y0 = splat_tile(b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
+                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, 4)
+                x0, y0 = splat_tile((trans, buf), b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
                 st = ti.Vector([0.0] * NSTAT)
                 bg = ti.Vector([background[0], background[1], background[2]])
                 for py in range(y0, ti.min(y0 + tile, H)):
                     for px in range(x0, ti.min(x0 + tile, W)):
                         p = (py - y0) * tile + (px - x0)
-                        T = ti.abs(buf[p, 0])
+                        T = ti.abs(trans[p])
                         if 1.0 - T >= mask_alpha:
-                            rgb = ti.Vector([buf[p, 1], buf[p, 2], buf[p, 3]])
+                            rgb = ti.Vector([buf[p, 0], buf[p, 1], buf[p, 2]])
                             accumulate_stats(st, rgb + T * bg, target, py, px)
                 for s in ti.static(range(NSTAT)):
                     run_stats[b, t // tiles_x, t % tiles_x, s] = st[s]

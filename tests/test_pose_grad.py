@@ -588,14 +588,14 @@ def assert_same_to_rounding(images, images2, system, system2) -> None:
 
 @pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
 def test_derivative_pass_tiling_changes_no_number(name):
-    """The derivative pass bins at RasterConfig.grad_tile_size (8): each pixel's list holds the same Gaussians
-    that can reach it, in the same depth order, at any tile size, so the images, derivatives, costs, gradients and
-    JtJ of 4 px lists equal those of 8 px lists to rounding (the rows' alpha recurrences start at other pixels).
-    (16 px tiles would check the same; the tile layout's accumulators at 16 px take minutes to compile.)"""
+    """The derivative pass bins at its own tile size (RasterConfig.grad_tile; 16 px on the CPU, 8 px for the
+    per-pixel layout): each pixel's list holds the same Gaussians that can reach it, in the same depth order, at
+    any tile size, so the images, derivatives, costs, gradients and JtJ of 8 px lists equal those of 16 px lists
+    to rounding (the rows' alpha recurrences start at other pixels)."""
     scene, cam, T = cost_case(name)
     img = degrade(hp.render(scene, cam, moved(T, 4, 0.01)), np.random.default_rng(0))
     poses = [T, moved(T, 1, 0.004), moved(T, 5, -0.003)]
-    got, ref = (get_renderer(scene, hp.RasterConfig(grad_tile_size=g)) for g in (4, 8))
+    got, ref = (get_renderer(scene, hp.RasterConfig(grad_tile_size=g)) for g in (8, 16))
     q = got.upload_window_query(img)
     assert_same_to_rounding(got.render_derivatives(cam, poses), ref.render_derivatives(cam, poses),
                             got.pose_gradient(cam, poses, q), ref.pose_gradient(cam, poses, q))
@@ -666,6 +666,23 @@ def test_pixel_masks_change_no_number(name):
         np.testing.assert_array_equal(a, b)
 
 
+def test_grad_tile_follows_the_blend_layout():
+    """RasterConfig.grad_tile_size None (the default): the tile-parallel derivative blend bins at the renders'
+    tile_size, the per-pixel one at 8 px; a set value is kept for either; a renderer's config holds the value its
+    kernels read."""
+    auto, eight = hp.RasterConfig(), hp.RasterConfig(grad_tile_size=8)
+    assert auto.grad_tile_size is None
+    assert auto.grad_tile(True) == auto.tile_size == 16 and auto.grad_tile(False) == 8
+    assert eight.grad_tile(True) == eight.grad_tile(False) == 8
+    assert hp.RasterConfig(tile_size=32).grad_tile(True) == 32
+    r = get_renderer(make_room_scene())  # this process runs on the CPU: the tile-parallel layout
+    assert r.config.grad_tile_size == 16 and r.config == auto.for_layout(True)
+    cam = hp.Camera.from_fov(64, 48, 60.0)
+    r.pose_gradient(cam, [hp.Pose.identity()], r.upload_window_query(np.zeros((48, 64, 3), np.float32)))
+    r.render_full(cam, [hp.Pose.identity()])
+    assert set(r.pool.workspaces) == {(64, 48, 16)}  # the pass and the renders share one geometry workspace
+
+
 def test_grad_masks_setting():
     """RasterConfig.grad_masks: "auto" uses the masks for the per-pixel derivative blend on the CPU only and where
     the tiles fit 64 bits, never for the tile-parallel one (the CPU's default); a bad value or "on" with tiles too
@@ -679,6 +696,8 @@ def test_grad_masks_setting():
     assert not uses_masks(hp.RasterConfig(grad_masks="on"), "cpu", True)
     r = get_renderer(make_room_scene())  # this process runs on the CPU
     assert r.blend_mode == "splat" and not r.grad_masks
+    pixel = get_renderer(make_room_scene(), hp.RasterConfig(blend="pixel"))
+    assert pixel.grad_masks and pixel.config.grad_tile_size == 8
     with pytest.raises(ValueError, match="grad_masks"):
         hp.RasterConfig(grad_masks="yes")
     with pytest.raises(ValueError, match="grad_tile_size <= 8"):

@@ -47,23 +47,22 @@ class Renderer:
     MIN_WORKSPACE = 14  # poses: a search expansion's children (12 moves, a pattern move) fit
 
     def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
-        current_arch()
-        self.config = config or RasterConfig()
+        config, arch = config or RasterConfig(), current_arch()
+        self.blend_mode = mode = ("pixel" if arch == "cuda" else "splat") if config.blend == "auto" else config.blend
+        self.config = config.for_layout(mode == "splat")  # the derivative pass's tiles follow the blend layout
         if scene.num_gaussians == 0:
             raise ValueError("scene has no Gaussians")
         self.sh_degree = scene.sh_degree
         self.gaussians = DeviceGaussians.from_scene(scene)
         self.pool = Pool()
-        self.sort_mode = sort_mode(self.config.sort, current_arch())
-        self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, current_arch())  # RasterConfig.tile_test
+        self.sort_mode = sort_mode(self.config.sort, arch)
+        self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, arch)  # RasterConfig.tile_test
         self._project = launcher(projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse))
         self._sort = launcher(tile_sort_kernel(self.config, ellipse))
-        auto_blend = "pixel" if current_arch() == "cuda" else "splat"
-        self.blend_mode = mode = auto_blend if self.config.blend == "auto" else self.config.blend
         cost, img = (splat.splat_cost_kernel, splat.splat_image_func) if mode == "splat" else (cost_kernel, image_func)
         self._blend_cost, self._blend_image = launcher(cost(self.config)), launcher(image_kernel(img(self.config)))
         self._reduce = launcher(reduce_kernel())
-        self.grad_masks = uses_masks(self.config, current_arch(), mode == "splat")  # the derivative pass's masks
+        self.grad_masks = uses_masks(self.config, arch, mode == "splat")  # the derivative pass's masks
         self._root: Renderer | None = None  # for a subset: the renderer it was selected from, and its
         self._root_index: np.ndarray | None = None  # resident indices there (increasing)
 

@@ -22,6 +22,7 @@ import pytest
 import torch
 
 import hgsloc_plugin as hp
+from hgsloc_plugin.backend import current_arch
 from hgsloc_plugin.costs import cost_from_window
 from hgsloc_plugin.demo.queries import degrade, query_poses
 from hgsloc_plugin.demo.scene import make_room_scene
@@ -675,12 +676,17 @@ def test_grad_tile_follows_the_blend_layout():
     assert auto.grad_tile(True) == auto.tile_size == 16 and auto.grad_tile(False) == 8
     assert eight.grad_tile(True) == eight.grad_tile(False) == 8
     assert hp.RasterConfig(tile_size=32).grad_tile(True) == 32
-    r = get_renderer(make_room_scene())  # this process runs on the CPU: the tile-parallel layout
-    assert r.config.grad_tile_size == 16 and r.config == auto.for_layout(True)
+    default = get_renderer(make_room_scene())  # the backend's layout (tiles on the CPU, pixels on CUDA)
+    assert default.config.grad_tile_size == (16 if default.blend_mode == "splat" else 8)
     cam = hp.Camera.from_fov(64, 48, 60.0)
-    r.pose_gradient(cam, [hp.Pose.identity()], r.upload_window_query(np.zeros((48, 64, 3), np.float32)))
-    r.render_full(cam, [hp.Pose.identity()])
-    assert set(r.pool.workspaces) == {(64, 48, 16)}  # the pass and the renders share one geometry workspace
+    q = np.zeros((48, 64, 3), np.float32)
+    tiled, pixel = hp.RasterConfig(blend="splat"), hp.RasterConfig(blend="pixel", grad_masks="on")
+    for config, tiles in ((tiled, {16}), (pixel, {16, 8})):
+        r = get_renderer(make_room_scene(), config)
+        assert r.config == config.for_layout(config.blend == "splat")
+        r.pose_gradient(cam, [hp.Pose.identity()], r.upload_window_query(q))
+        r.render_full(cam, [hp.Pose.identity()])
+        assert set(r.pool.workspaces) == {(64, 48, t) for t in tiles}  # tiles: the pass shares the renders' lists
 
 
 def test_grad_masks_setting():
@@ -694,8 +700,8 @@ def test_grad_masks_setting():
     assert uses_masks(hp.RasterConfig(grad_masks="on"), "cuda", False)
     assert not uses_masks(hp.RasterConfig(grad_masks="off"), "cpu", False)
     assert not uses_masks(hp.RasterConfig(grad_masks="on"), "cpu", True)
-    r = get_renderer(make_room_scene())  # this process runs on the CPU
-    assert r.blend_mode == "splat" and not r.grad_masks
+    r = get_renderer(make_room_scene())
+    assert r.blend_mode == ("pixel" if current_arch() == "cuda" else "splat") and not r.grad_masks
     pixel = get_renderer(make_room_scene(), hp.RasterConfig(blend="pixel"))
     assert pixel.grad_masks and pixel.config.grad_tile_size == 8
     with pytest.raises(ValueError, match="grad_masks"):

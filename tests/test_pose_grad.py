@@ -61,7 +61,7 @@ def smooth_scene():
     return hp.GaussianScene.from_arrays(s.means, s.quats, s.scales * 3, s.opacities * 0.5, sh=s.sh)
 
 
-# the smallest images that cover every branch: partial tiles (40x30 at 8 px tiles), SH degree 3, a random scene
+# the smallest images that cover every branch: partial tiles (40x30 at 8 and 16 px tiles), SH degree 3, a random scene
 CASES = [("donut.ply", 40, 30), ("small_sh3.ply", 64, 48), ("random", 64, 48)]
 
 

@@ -74,7 +74,8 @@ class RasterConfig:
             raise ValueError(f"tile_test must be 'auto', 'ellipse' or 'box', got {self.tile_test!r}")
         if not (0 < self.alpha_max <= 1):
             raise ValueError(f"alpha_max must be in (0, 1], got {self.alpha_max}")
-        if self.tile_size <= 0 or (self.grad_tile_size or 1) <= 0 or self.max_batch_elements <= 0:
+        grad_tile_ok = self.grad_tile_size is None or self.grad_tile_size > 0
+        if self.tile_size <= 0 or not grad_tile_ok or self.max_batch_elements <= 0:
             raise ValueError("tile_size, grad_tile_size and max_batch_elements must be positive")
 
     def grad_tile(self, splat: bool) -> int:

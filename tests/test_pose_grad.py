@@ -676,6 +676,9 @@ def test_grad_tile_follows_the_blend_layout():
     assert auto.grad_tile(True) == auto.tile_size == 16 and auto.grad_tile(False) == 8
     assert eight.grad_tile(True) == eight.grad_tile(False) == 8
     assert hp.RasterConfig(tile_size=32).grad_tile(True) == 32
+    for bad in (0, -8):
+        with pytest.raises(ValueError, match="grad_tile_size"):
+            hp.RasterConfig(grad_tile_size=bad)
     default = get_renderer(make_room_scene())  # the backend's layout (tiles on the CPU, pixels on CUDA)
     assert default.config.grad_tile_size == (16 if default.blend_mode == "splat" else 8)
     cam = hp.Camera.from_fov(64, 48, 60.0)
@@ -703,7 +706,7 @@ def test_grad_masks_setting():
     r = get_renderer(make_room_scene())
     assert r.blend_mode == ("pixel" if current_arch() == "cuda" else "splat") and not r.grad_masks
     pixel = get_renderer(make_room_scene(), hp.RasterConfig(blend="pixel"))
-    assert pixel.grad_masks and pixel.config.grad_tile_size == 8
+    assert pixel.grad_masks == (current_arch() != "cuda") and pixel.config.grad_tile_size == 8
     with pytest.raises(ValueError, match="grad_masks"):
         hp.RasterConfig(grad_masks="yes")
     with pytest.raises(ValueError, match="grad_tile_size <= 8"):

@@ -16,10 +16,11 @@ class RasterConfig:
     Attributes:
         tile_size: tile edge in pixels.
         grad_tile_size: tile edge of the lists the pose-derivative pass blends (``blend_grad.py``); None: the
-            blend layout's (:meth:`grad_tile`): ``tile_size`` for the tile-parallel blend, which visits each
-            Gaussian's ellipse pixels only, so that larger tiles only save list entries and row set-ups
-            (``benchmarks/derivative_pass.md``); ``PIXEL_GRAD_TILE`` (8) for the per-pixel blend, whose pixels walk
-            their tile's whole list. The same images and derivatives at any size, to float32 rounding.
+            layout's (:meth:`grad_tile`): ``tile_size`` for the tile-parallel blend on the CPU, a task per tile
+            whose Gaussians visit their ellipse pixels only, so that larger tiles only save list entries and row
+            set-ups (``benchmarks/derivative_pass.md``); ``PIXEL_GRAD_TILE`` (8) otherwise: the per-pixel blend,
+            whose pixels walk their tile's whole list, and any blend on CUDA (a tile a thread there). The same
+            images and derivatives at any size, to float32 rounding.
         grad_masks: for the per-pixel derivative blend (``blend`` "pixel"): "on": each list entry carries a mask of
             the tile's pixels its Gaussian can reach (``pose_grad.pixel_masks``; needs ``grad_tile_size`` <= 8), so
             a pixel skips the others on one bit test: the same numbers, less time on the CPU; "off"; "auto" (on
@@ -78,13 +79,13 @@ class RasterConfig:
         if self.tile_size <= 0 or not grad_tile_ok or self.max_batch_elements <= 0:
             raise ValueError("tile_size, grad_tile_size and max_batch_elements must be positive")
 
-    def grad_tile(self, splat: bool) -> int:
-        """The derivative pass's tile edge for the blend layout (``splat``: the tile-parallel one): ``grad_tile_size``,
-        or when None ``tile_size`` (tile-parallel) or ``PIXEL_GRAD_TILE`` (per pixel)."""
+    def grad_tile(self, cpu_tiles: bool) -> int:
+        """The derivative pass's tile edge: ``grad_tile_size``, or when None ``tile_size`` where ``cpu_tiles`` (the
+        tile-parallel blend on the CPU) and ``PIXEL_GRAD_TILE`` elsewhere."""
         if self.grad_tile_size is not None:
             return self.grad_tile_size
-        return self.tile_size if splat else PIXEL_GRAD_TILE
+        return self.tile_size if cpu_tiles else PIXEL_GRAD_TILE
 
-    def for_layout(self, splat: bool) -> RasterConfig:
+    def for_layout(self, cpu_tiles: bool) -> RasterConfig:
         """This config with ``grad_tile_size`` set to :meth:`grad_tile` (what the kernels read)."""
-        return replace(self, grad_tile_size=self.grad_tile(splat))
+        return replace(self, grad_tile_size=self.grad_tile(cpu_tiles))

@@ -589,7 +589,7 @@ def assert_same_to_rounding(images, images2, system, system2) -> None:
 
 @pytest.mark.parametrize("name", ["room", "small_sh3.ply"])
 def test_derivative_pass_tiling_changes_no_number(name):
-    """The derivative pass bins at its own tile size (RasterConfig.grad_tile; 16 px on the CPU, 8 px for the
+    """The derivative pass bins at its own tile size (RasterConfig.grad_tile; 16 px for the CPU tiles, 8 px for the
     per-pixel layout): each pixel's list holds the same Gaussians that can reach it, in the same depth order, at
     any tile size, so the images, derivatives, costs, gradients and JtJ of 8 px lists equal those of 16 px lists
     to rounding (the rows' alpha recurrences start at other pixels)."""
@@ -668,9 +668,9 @@ def test_pixel_masks_change_no_number(name):
 
 
 def test_grad_tile_follows_the_blend_layout():
-    """RasterConfig.grad_tile_size None (the default): the tile-parallel derivative blend bins at the renders'
-    tile_size, the per-pixel one at 8 px; a set value is kept for either; a renderer's config holds the value its
-    kernels read."""
+    """RasterConfig.grad_tile_size None (the default): the tile-parallel derivative blend on the CPU bins at the
+    renders' tile_size (and shares their tile lists), the per-pixel one (and any blend on CUDA) at 8 px; a set value
+    is kept; a renderer's config holds the value its kernels read."""
     auto, eight = hp.RasterConfig(), hp.RasterConfig(grad_tile_size=8)
     assert auto.grad_tile_size is None
     assert auto.grad_tile(True) == auto.tile_size == 16 and auto.grad_tile(False) == 8
@@ -679,14 +679,15 @@ def test_grad_tile_follows_the_blend_layout():
     for bad in (0, -8):
         with pytest.raises(ValueError, match="grad_tile_size"):
             hp.RasterConfig(grad_tile_size=bad)
+    cpu = current_arch() != "cuda"
     default = get_renderer(make_room_scene())  # the backend's layout (tiles on the CPU, pixels on CUDA)
-    assert default.config.grad_tile_size == (16 if default.blend_mode == "splat" else 8)
+    assert default.config.grad_tile_size == (16 if cpu else 8)
     cam = hp.Camera.from_fov(64, 48, 60.0)
     q = np.zeros((48, 64, 3), np.float32)
     tiled, pixel = hp.RasterConfig(blend="splat"), hp.RasterConfig(blend="pixel", grad_masks="on")
-    for config, tiles in ((tiled, {16}), (pixel, {16, 8})):
+    for config, tiles in ((tiled, {16} if cpu else {16, 8}), (pixel, {16, 8})):
         r = get_renderer(make_room_scene(), config)
-        assert r.config == config.for_layout(config.blend == "splat")
+        assert r.config == config.for_layout(cpu and config.blend == "splat")
         r.pose_gradient(cam, [hp.Pose.identity()], r.upload_window_query(q))
         r.render_full(cam, [hp.Pose.identity()])
         assert set(r.pool.workspaces) == {(64, 48, t) for t in tiles}  # tiles: the pass shares the renders' lists

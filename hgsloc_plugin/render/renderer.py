@@ -49,7 +49,7 @@ class Renderer:
     def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
         config, arch = config or RasterConfig(), current_arch()
         self.blend_mode = mode = ("pixel" if arch == "cuda" else "splat") if config.blend == "auto" else config.blend
-        self.config = config.for_layout(mode == "splat")  # the derivative pass's tiles follow the blend layout
+        self.config = config.for_layout(mode == "splat" and arch != "cuda")  # the derivative pass's tile size
         if scene.num_gaussians == 0:
             raise ValueError("scene has no Gaussians")
         self.sh_degree = scene.sh_degree

@@ -93,26 +93,41 @@ def copy_query_kernel():
 
 
 @ti.func
+def _horizontal_at(rgb: ti.template(), qstats: ti.template(), qi, b, y, x, W, out: ti.template()):
+    """:func:`horizontal` at one pixel."""
+    for c in ti.static(range(3)):
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        for j in ti.static(range(2 * RADIUS + 1)):
+            xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
+            r = rgb[b, y, xx, c]
+            w = ti.static(_W[j])
+            s1 += w * r
+            s2 += w * r * r
+            s3 += w * r * qstats[qi, y, xx, c, 2]
+        out[b, y, x, c, 0] = s1
+        out[b, y, x, c, 1] = s2
+        out[b, y, x, c, 2] = s3
+
+
+@ti.func
 def horizontal(rgb: ti.template(), qstats: ti.template(), query_index: ti.template(), num_poses, out: ti.template()):
-    """First (horizontal) window pass over the rendering: out [B, H, W, 3, 3] = filtered r, r^2, r q per channel."""
+    """First (horizontal) window pass over the rendering: out [B, H, W, 3, 3] = filtered r, r^2, r q per channel.
+    On the CPU one task per image row (``grain.py``: no index division per pixel), elsewhere one per pixel."""
     H = rgb.shape[1]
     W = rgb.shape[2]
-    for b, y, x in ti.ndrange(num_poses, H, W):
-        qi = query_index[b]
-        for c in ti.static(range(3)):
-            s1 = 0.0
-            s2 = 0.0
-            s3 = 0.0
-            for j in ti.static(range(2 * RADIUS + 1)):
-                xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
-                r = rgb[b, y, xx, c]
-                w = ti.static(_W[j])
-                s1 += w * r
-                s2 += w * r * r
-                s3 += w * r * qstats[qi, y, xx, c, 2]
-            out[b, y, x, c, 0] = s1
-            out[b, y, x, c, 1] = s2
-            out[b, y, x, c, 2] = s3
+    stride = ti.static(spread())
+    if ti.static(stride > 1):
+        for task in range(num_poses * H * stride):
+            is_item, b, y = item(task, stride, H)
+            if is_item:
+                qi = query_index[b]
+                for x in range(W):
+                    _horizontal_at(rgb, qstats, qi, b, y, x, W, out)
+    else:
+        for b, y, x in ti.ndrange(num_poses, H, W):
+            _horizontal_at(rgb, qstats, query_index[b], b, y, x, W, out)
 
 
 @ti.func

@@ -89,7 +89,8 @@ def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.templat
 def window_filter(axis: int, transpose: bool, channels: int):
     """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: rows / y, 1: columns /
     x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each input pixel
-    gives to the outputs: at the borders the clamped taps' weights add up)."""
+    gives to the outputs: at the borders the clamped taps' weights add up). On the CPU one task per image row
+    (``grain.py``), elsewhere one per pixel: the same numbers."""
 
     @ti.func
     def load(src: ti.template(), b, y, x, q):
@@ -102,36 +103,48 @@ def window_filter(axis: int, transpose: bool, channels: int):
         return v
 
     @ti.func
+    def at(src: ti.template(), b, y, x, H, W, dst: ti.template()):
+        L = W if ti.static(axis == 1) else H
+        pos = x if ti.static(axis == 1) else y
+        acc = ti.Vector([0.0] * channels)
+        if ti.static(not transpose):
+            for j in ti.static(range(2 * RADIUS + 1)):
+                q = ti.min(ti.max(pos + j - RADIUS, 0), L - 1)
+                acc += ti.static(_W[j]) * load(src, b, y, x, q)
+        else:
+            if L == 1:
+                acc = load(src, b, y, x, 0)
+            elif pos == 0:  # every tap that clamps to 0: from q <= RADIUS, taps j <= RADIUS - q
+                for q in ti.static(range(RADIUS + 1)):
+                    if q < L:
+                        acc += ti.static(_CUM[RADIUS - q]) * load(src, b, y, x, q)
+            elif pos == L - 1:  # taps that clamp to L - 1: from q = L - 1 - s, taps j >= s + RADIUS
+                for s in ti.static(range(RADIUS + 1)):
+                    q = L - 1 - s
+                    if q >= 0:
+                        acc += ti.static(_TAIL[s + RADIUS]) * load(src, b, y, x, q)
+            else:
+                for j in ti.static(range(2 * RADIUS + 1)):
+                    q = pos - j + RADIUS
+                    if 0 <= q and q < L:
+                        acc += ti.static(_W[j]) * load(src, b, y, x, q)
+        for c in ti.static(range(channels)):
+            dst[b, y, x, c] = acc[c]
+
+    @ti.func
     def filt(src: ti.template(), num_poses, dst: ti.template()):
         H = src.shape[1]
         W = src.shape[2]
-        L = W if ti.static(axis == 1) else H
-        for b, y, x in ti.ndrange(num_poses, H, W):
-            pos = x if ti.static(axis == 1) else y
-            acc = ti.Vector([0.0] * channels)
-            if ti.static(not transpose):
-                for j in ti.static(range(2 * RADIUS + 1)):
-                    q = ti.min(ti.max(pos + j - RADIUS, 0), L - 1)
-                    acc += ti.static(_W[j]) * load(src, b, y, x, q)
-            else:
-                if L == 1:
-                    acc = load(src, b, y, x, 0)
-                elif pos == 0:  # every tap that clamps to 0: from q <= RADIUS, taps j <= RADIUS - q
-                    for q in ti.static(range(RADIUS + 1)):
-                        if q < L:
-                            acc += ti.static(_CUM[RADIUS - q]) * load(src, b, y, x, q)
-                elif pos == L - 1:  # taps that clamp to L - 1: from q = L - 1 - s, taps j >= s + RADIUS
-                    for s in ti.static(range(RADIUS + 1)):
-                        q = L - 1 - s
-                        if q >= 0:
-                            acc += ti.static(_TAIL[s + RADIUS]) * load(src, b, y, x, q)
-                else:
-                    for j in ti.static(range(2 * RADIUS + 1)):
-                        q = pos - j + RADIUS
-                        if 0 <= q and q < L:
-                            acc += ti.static(_W[j]) * load(src, b, y, x, q)
-            for c in ti.static(range(channels)):
-                dst[b, y, x, c] = acc[c]
+        stride = ti.static(spread())
+        if ti.static(stride > 1):  # the CPU: one task per image row (grain.py), no index division per pixel
+            for task in range(num_poses * H * stride):
+                is_item, b, y = item(task, stride, H)
+                if is_item:
+                    for x in range(W):
+                        at(src, b, y, x, H, W, dst)
+        else:
+            for b, y, x in ti.ndrange(num_poses, H, W):
+                at(src, b, y, x, H, W, dst)
 
     return filt
 

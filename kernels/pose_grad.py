@@ -13,7 +13,8 @@ same poses (they read its ``packed`` records, ``ntiles`` and tile lists):
   (a, b, c) along the six axes: ``dpacked [B, N, 5 * 6]`` (quantity-major, ``DX, DY, DCA, DCB, DCC``).
   The chain: ``dp_c = w x p_c + v``; mean ``m = f p/z + c``; camera covariance ``Sc = R S R^T`` turns with the
   rotation, ``dSc = [w]x Sc - Sc [w]x``; the projection Jacobian ``J(p_c)`` with the same clamp of the off-axis
-  term as the forward pass (a clamped coordinate follows z only); ``cov2 = J Sc J^T + eps2d I``;
+  term as the forward pass (a clamped coordinate follows z only); ``cov2 = J Sc J^T + eps2d I``, so with
+  ``JS = J Sc`` and ``N = dJ + J [w]x``, ``dcov2 = N JS^T + JS N^T`` (2 x 3 products per axis, no 3 x 3 ones);
   conic ``Q = cov2^-1``, ``dQ = -Q dcov2 Q``. The SH colour's view direction is held fixed (it changes with the
   camera centre only; measured in ``tests/test_pose_grad.py``: 1.6-2.7 % (relative L2) of the translation
   derivatives on the SH-3 scene, none of the rotation ones; the polish converges regardless).
@@ -54,6 +55,34 @@ def uses_masks(config: RasterConfig, arch: str, splat: bool) -> bool:
     if config.grad_masks == "auto":
         return arch != "cuda" and config.grad_tile(False) ** 2 <= MASK_BITS
     return config.grad_masks == "on"
+
+
+@ti.func
+def _rotated(k: ti.template(), p):
+    """dp_c along axis ``k`` of ``xi``: ``e_k x p`` for the rotation (k < 3), ``e_(k-3)`` for the translation."""
+    out = ti.Vector([0.0, 0.0, 0.0])
+    if ti.static(k == 0):
+        out = ti.Vector([0.0, -p[2], p[1]])
+    elif ti.static(k == 1):
+        out = ti.Vector([p[2], 0.0, -p[0]])
+    elif ti.static(k == 2):
+        out = ti.Vector([-p[1], p[0], 0.0])
+    else:
+        out[k - 3] = 1.0
+    return out
+
+
+@ti.func
+def _turned(k: ti.template(), J):
+    """``J [e_k]x`` [2, 3] for the rotation axes (k < 3: column m is ``J (e_k x e_m)``), 0 for the translation."""
+    out = ti.Matrix([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    if ti.static(k == 0):
+        out = ti.Matrix([[0.0, J[0, 2], -J[0, 1]], [0.0, J[1, 2], -J[1, 1]]])
+    elif ti.static(k == 1):
+        out = ti.Matrix([[-J[0, 2], 0.0, J[0, 0]], [-J[1, 2], 0.0, J[1, 0]]])
+    elif ti.static(k == 2):
+        out = ti.Matrix([[J[0, 1], -J[0, 0], 0.0], [J[1, 1], -J[1, 0], 0.0]])
+    return out
 
 
 @functools.cache
@@ -101,26 +130,32 @@ def projection_grad_func(config: RasterConfig):
             c11 = cov2[1, 1] + eps2d
             inv_det = 1.0 / (c00 * c11 - c01 * c01)
             Q = ti.Matrix([[c11 * inv_det, -c01 * inv_det], [-c01 * inv_det, c00 * inv_det]])
-            JS = J @ Sc
-            for k in range(NXI):  # a run-time loop: one copy of the body (loading time), exact 0/1 increments
-                w = ti.Vector([ti.select(k == 0, 1.0, 0.0), ti.select(k == 1, 1.0, 0.0), ti.select(k == 2, 1.0, 0.0)])
-                Wk = ti.Matrix([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])  # [w]x
-                dp = Wk @ p + ti.Vector([ti.select(k == 3, 1.0, 0.0), ti.select(k == 4, 1.0, 0.0),
-                                         ti.select(k == 5, 1.0, 0.0)])
-                dSc = Wk @ Sc - Sc @ Wk
+            JS = J @ Sc  # cov2 = JS J^T
+            q00 = Q[0, 0]
+            q01 = Q[0, 1]
+            q11 = Q[1, 1]
+            for k in ti.static(range(NXI)):
+                dp = _rotated(k, p)  # w x p (k < 3), else the unit translation
                 dz = dp[2]
                 drz = -dz * rz * rz
                 dtx = free_x * dp[0] + (1.0 - free_x) * ux * dz
                 dty = free_y * dp[1] + (1.0 - free_y) * vy * dz
-                dJ = ti.Matrix([[fx * drz, 0.0, -fx * (dtx * rz * rz + 2.0 * tx * rz * drz)],
-                                [0.0, fy * drz, -fy * (dty * rz * rz + 2.0 * ty * rz * drz)]])
-                dcov = dJ @ JS.transpose() + J @ dSc @ J.transpose() + JS @ dJ.transpose()
-                dQ = -(Q @ dcov @ Q)
+                # dcov = N JS^T + JS N^T with N = dJ + J [w]x (J dSc J^T = J [w]x JS^T + JS (J [w]x)^T)
+                N = _turned(k, J) + ti.Matrix([[fx * drz, 0.0, -fx * (dtx * rz * rz + 2.0 * tx * rz * drz)],
+                                               [0.0, fy * drz, -fy * (dty * rz * rz + 2.0 * ty * rz * drz)]])
+                d00 = 2.0 * (N[0, 0] * JS[0, 0] + N[0, 1] * JS[0, 1] + N[0, 2] * JS[0, 2])
+                d01 = (N[0, 0] * JS[1, 0] + N[0, 1] * JS[1, 1] + N[0, 2] * JS[1, 2]
+                       + N[1, 0] * JS[0, 0] + N[1, 1] * JS[0, 1] + N[1, 2] * JS[0, 2])
+                d11 = 2.0 * (N[1, 0] * JS[1, 0] + N[1, 1] * JS[1, 1] + N[1, 2] * JS[1, 2])
+                e00 = q00 * d00 + q01 * d01  # (Q dcov) row 0 and row 1; dQ = -(Q dcov) Q, symmetric
+                e01 = q00 * d01 + q01 * d11
+                e10 = q01 * d00 + q11 * d01
+                e11 = q01 * d01 + q11 * d11
                 dpacked[b, i, DX * NXI + k] = fx * (dp[0] * rz + p[0] * drz)
                 dpacked[b, i, DY * NXI + k] = fy * (dp[1] * rz + p[1] * drz)
-                dpacked[b, i, DCA * NXI + k] = dQ[0, 0]
-                dpacked[b, i, DCB * NXI + k] = dQ[0, 1]
-                dpacked[b, i, DCC * NXI + k] = dQ[1, 1]
+                dpacked[b, i, DCA * NXI + k] = -(e00 * q00 + e01 * q01)
+                dpacked[b, i, DCB * NXI + k] = -(e00 * q01 + e01 * q11)
+                dpacked[b, i, DCC * NXI + k] = -(e10 * q01 + e11 * q11)
 
     return projection_grad
 

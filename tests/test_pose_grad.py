@@ -15,6 +15,7 @@ there get a 5 % bound and everything else 1 %.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -27,11 +28,14 @@ from hgsloc_plugin.costs import cost_from_window
 from hgsloc_plugin.demo.queries import degrade, query_poses
 from hgsloc_plugin.demo.scene import make_room_scene
 from hgsloc_plugin.refine.plan import median_depth
-from hgsloc_plugin.refine.polish import polish, step_pixels
+from hgsloc_plugin.refine.polish import FINAL, polish, step_pixels
 from hgsloc_plugin.render import get_renderer
 
 from .conftest import random_scene, shared_path
 from .reference.render_torch import render_reference
+
+#: the last stage's thresholds with every trial line-searched (no ``Convergence.direct`` trials)
+LINE_SEARCHED = dataclasses.replace(FINAL, direct=0.0)
 
 ALPHA_MIN = hp.RasterConfig().alpha_min
 
@@ -205,8 +209,9 @@ def test_lm_converges_from_a_subpixel_offset_to_well_below_the_finest_step(name)
 
 
 def test_the_rule_reuses_the_render_of_the_polished_pose():
-    """The polish reports its returned pose's plain-render cost (``cost_rendered``, its line search's), bit for bit
-    the scorer's own, and the rule then renders the coarse pose and the one-pixel moves but not the candidate."""
+    """A polish whose last kept step was line-searched reports its returned pose's plain-render cost
+    (``cost_rendered``), bit for bit the scorer's own, and the rule then renders the coarse pose and the one-pixel
+    moves but not the candidate."""
     from types import SimpleNamespace
 
     from hgsloc_plugin.refine.routes import Candidate
@@ -218,7 +223,8 @@ def test_the_rule_reuses_the_render_of_the_polished_pose():
     img = degrade(hp.render(scene, cam, T), np.random.default_rng(0))
     f, depth = 0.5 * (cam.fx + cam.fy), median_depth(scene, cam, T)
     start = T.perturbed_in_camera([1.5 / f, -1.0 / f, 0.5 / f], [depth / f, 0.5 * depth / f, 0.0])
-    pose, st = polish(r, cam, r.upload_window_query(img), start, depth=depth, iterations=10, allowed=lambda p: True)
+    pose, st = polish(r, cam, r.upload_window_query(img), start, depth=depth, iterations=10, allowed=lambda p: True,
+                      converged=LINE_SEARCHED)
     assert np.isfinite(st.cost_rendered) and st.accepted_steps >= 1
     fresh = Scorer(r, "cs", (0.0, 0.0, 0.0), 0.0)
     fresh.set_query(cam, img)
@@ -279,7 +285,8 @@ def test_line_search_lengthens_short_gauss_newton_steps():
     cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
     out = {}
     for ls in ((), (1.0, 2.0, 4.0)):
-        pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, line_search=ls)
+        pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, line_search=ls,
+                          converged=LINE_SEARCHED)
         out[ls] = (pose, st)
         assert st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
     (_, s0), (p1, s1) = out[()], out[(1.0, 2.0, 4.0)]
@@ -432,7 +439,8 @@ def test_line_search_scores_the_longer_multiples_only_where_they_pay():
         for longer_from in ("default", None):
             fake = Batches(target, overstate)
             kw = {} if longer_from == "default" else {"longer_from": None}
-            pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, **kw)
+            pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True,
+                              converged=LINE_SEARCHED, **kw)
             assert st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
             assert pose.errors_to(target)[0] < 1e-3
             runs[longer_from] = (pose, st, fake.sizes)
@@ -455,16 +463,18 @@ def test_line_search_extends_past_the_longest_multiple(monkeypatch):
     start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
     fake = _QuadraticCost(target, 40.0)
     cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
-    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True)
+    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True,
+                      converged=LINE_SEARCHED)
     monkeypatch.setattr(polish_mod, "MAX_MULTIPLE", 4.0)  # no extension
-    pose4, st4 = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True)
+    pose4, st4 = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True,
+                        converged=LINE_SEARCHED)
     assert st.cost <= st4.cost * (1 + 1e-9) and st.passes < 0.5 * st4.passes, (st.passes, st4.passes)
     assert st.renders > 3 * st.passes  # the extensions were scored (plain renders)
     assert pose.errors_to(target)[0] < 1e-3 and st.cost == pytest.approx(fake.cost(pose))
     # a region that forbids the longer steps stops the extension: the result stays inside it
     c0 = start.centre()
     inside = lambda p: np.linalg.norm(p.centre() - c0) <= 0.01  # noqa: E731
-    pose_r, _ = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=inside)
+    pose_r, _ = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=inside, converged=LINE_SEARCHED)
     assert np.linalg.norm(pose_r.centre() - c0) <= 0.01
 
 
@@ -562,11 +572,57 @@ def test_a_retry_after_a_failed_trial_is_materially_shorter():
     start = target.perturbed_in_camera(np.radians([3.0, -2.0, 1.0]), [0.2, 0.0, 0.1])
     fake = Uphill(target)
     cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
-    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=10, allowed=lambda p: True, max_failures=4)
+    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=10, allowed=lambda p: True, max_failures=4,
+                      converged=LINE_SEARCHED)
     assert pose is start and st.passes == 1 and st.accepted_steps == 0 and len(fake.tried) >= 3, st
     motions = [step_pixels(start.offset_in_camera(T), 50.0, 2.0) for T in fake.tried]
     assert all(b <= RETRY_SHRINK * a * (1 + 1e-9) for a, b in zip(motions, motions[1:])), motions
 
+
+
+def test_the_last_stage_takes_model_steps_straight_to_their_pass():
+    """In the last stage (``FINAL.direct``) a step whose model predicts a clear decrease goes to its derivative pass
+    without a line-search render; one predicted to gain little is still scored first and ends the stage without a
+    pass. With the exact curvature that saves renders and lands where the line-searched polish does. With the
+    curvature overstated 4x the first direct pass shows a longer step would have paid, a failed direct trial shows
+    the model does not hold, and either way the following trials are line-searched again."""
+
+    class Logged(_QuadraticCost):
+        def __init__(self, target, overstate, flip=False):
+            super().__init__(target, overstate)
+            self.flip, self.calls = flip, []
+
+        def window_cost(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.calls.append("render")
+            return super().window_cost(camera, poses, qstats, background, mask_alpha)
+
+        def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.calls.append("pass")
+            c, g, H = super().pose_gradient(camera, poses, qstats, background, mask_alpha)
+            return c, (-g if self.flip else g), H
+
+    assert FINAL.direct > 0 and LINE_SEARCHED.direct == 0
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    runs = {}
+    for overstate in (1.0, 4.0):
+        for conv in (FINAL, LINE_SEARCHED):
+            fake = Logged(target, overstate)
+            pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True, converged=conv)
+            assert st.cost < st.cost_start and st.cost == pytest.approx(fake.cost(pose))
+            assert pose.errors_to(target)[0] < 1e-3
+            runs[overstate, conv] = (pose, st, fake.calls)
+    (pose, st, calls), (pose_ls, st_ls, _) = runs[1.0, FINAL], runs[1.0, LINE_SEARCHED]
+    assert calls[:2] == ["pass", "pass"]  # the start's pass, then a trial without a render
+    assert st.renders < st_ls.renders and st.passes <= st_ls.passes + 1 and pose.errors_to(pose_ls)[0] < 1e-4
+    (_, st4, calls4), (_, st4_ls, _) = runs[4.0, FINAL], runs[4.0, LINE_SEARCHED]
+    assert calls4[:3] == ["pass", "pass", "render"]  # one direct trial, then line-searched
+    assert st4.passes <= st4_ls.passes + 1, (st4.passes, st4_ls.passes)
+    fake = Logged(target, 1.0, flip=True)  # the gradient points uphill: the direct trial fails
+    pose, st = polish(fake, cam, None, start, depth=2.0, iterations=10, allowed=lambda p: True, max_failures=3)
+    assert pose is start and st.accepted_steps == 0
+    assert fake.calls[:3] == ["pass", "pass", "render"] and fake.calls.count("pass") == 2
 
 def assert_same_to_rounding(images, images2, system, system2) -> None:
     """Two derivative passes of the same poses agree to float32 rounding: colour and alpha within 1e-5, the colour

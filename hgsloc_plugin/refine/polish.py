@@ -14,6 +14,14 @@ already shows a decrease under ``decrease`` is taken without its derivative pass
 polish ends there, with the Hessian of the pose before it. A stage followed by a finer one likewise takes a kept
 Gauss-Newton step under ``HANDOFF_PX`` without its pass and hands over (``Convergence.handoff_px``).
 
+Direct trials: in the last stage (``Convergence.direct``) a step whose Gauss-Newton model predicts a decrease of at
+least ``DIRECT_FROM`` times the convergence threshold goes straight to its derivative pass, which gives its cost too:
+near the minimum the model's step is kept as it is, and its line-search render would only precede the pass. Only
+while the model holds: after a failed trial, a kept step whose line search needed a longer multiple, or a direct
+one whose decrease says a longer step would have paid (:func:`longer_pays`), the next trials are line-searched until
+one keeps its multiple 1. A step predicted to lower the cost less is still scored first: it usually ends the stage
+without a pass.
+
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none lowers the
 cost the trial fails without a derivative pass. The first multiple is scored alone, the others (one batch) only when
@@ -56,6 +64,9 @@ MIN_STEP_PX = 0.01  # a step below this image motion (pixels at the polish size)
 # ... and for a stage followed by a finer one (the gradient route's coarse sizes): the finer stage goes on
 STAGE_STEP_PX = 0.25
 HANDOFF_PX = 1.0  # ... which hands a kept Gauss-Newton step under this (pixels at its size) to the finer stage
+# the last stage's trials predicted to lower the cost by this many times its ``decrease`` threshold (or more) skip
+# the line search (``Convergence.direct``; how 2, 3 and 5 compare: ``benchmarks/defaults.md``)
+DIRECT_FROM = 3.0
 
 
 @dataclass(frozen=True)
@@ -64,14 +75,17 @@ class Convergence:
     multiple the line search last needed), or a kept step lowering the cost by less than ``decrease`` of it. A
     stage followed by a finer one also hands over (``handoff_px``): a Gauss-Newton step the line search keeps as
     it is (its multiple 1 wins) and under ``handoff_px`` of image motion is taken without its derivative pass, and
-    the finer stage, which starts with one, goes on from there (0: never)."""
+    the finer stage, which starts with one, goes on from there (0: never). A trial whose Gauss-Newton model predicts
+    a decrease of at least ``direct`` times ``decrease`` of the cost goes to its derivative pass without a line
+    search (0: never)."""
 
     step_px: float
     decrease: float
     handoff_px: float = 0.0
+    direct: float = 0.0
 
 
-FINAL = Convergence(MIN_STEP_PX, MIN_DECREASE)  # the last stage
+FINAL = Convergence(MIN_STEP_PX, MIN_DECREASE, direct=DIRECT_FROM)  # the last stage
 # a stage followed by a finer one; its decrease stays the last stage's: a coarser one (1e-2) saved 0.6 passes per
 # query at 2 % / 1 deg but left a wide search's 32 px stage short of the basin on one 30 cm / 10 deg prior. Its
 # handoff needs the multiple 1 to win: a stage crawling down a long valley in sub-pixel steps that the line search
@@ -124,6 +138,12 @@ def step_pixels(xi: np.ndarray, f: float, depth: float) -> float:
     return f * float(np.linalg.norm(xi[:3])) + f * float(np.linalg.norm(xi[3:])) / max(depth, 1e-12)
 
 
+def predicted_decrease(g: np.ndarray, H: np.ndarray, xi: np.ndarray) -> float:
+    """The decrease of the cost that the Gauss-Newton model (gradient ``g`` [6], Hessian ``H`` [6, 6]) predicts
+    for the step ``xi`` [6]: ``-(g.xi + xi' H xi / 2)``."""
+    return -(float(g @ xi) + 0.5 * float(xi @ H @ xi))
+
+
 def longer_pays(drop: float, linear: float, longer_from: float) -> bool:
     """Whether a line search should score the multiples after its first: the parabola through the cost at the
     step's start, with the slope that predicts a decrease ``linear`` at the first multiple (``-g.xi`` times it),
@@ -171,8 +191,9 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
     def failed(motion: float) -> bool:
         """A trial of ``motion`` pixels that did not lower the cost: more damping, the next trial at most
         ``RETRY_SHRINK`` of it; True when that makes ``max_failures`` in a row (the polish stops)."""
-        nonlocal lam, retry_limit, failures
+        nonlocal lam, retry_limit, failures, model_holds
         lam = min(lam * 10.0, LAMBDA_MAX)
+        model_holds = False
         retry_limit = RETRY_SHRINK * motion
         failures += 1
         if failures >= max_failures:
@@ -182,6 +203,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
     lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
+    model_holds = True  # the last trial's outcome followed the model (no failure, no longer multiple paying)
     retry_limit = math.inf  # image motion the next trial must stay under (after a failed one)
     while stats.passes < iterations:
         d = np.diag(H)
@@ -211,7 +233,11 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 stats.stopped = "trust region"
                 break
             continue
-        if line_search:
+        direct = (converged.direct > 0 and model_holds
+                  and predicted_decrease(g, H, xi) >= converged.direct * converged.decrease * cost)
+        if direct:
+            reach = 1.0
+        elif line_search:
             first = line_search if longer_from is None else line_search[:1]
             cands = [(m, T) for m, T in multiples(first, pose, xi) if m == line_search[0] or allowed(T)]
             lc = score(cands)
@@ -237,6 +263,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 j = j2
             m, trial = cands[j]
             reach = m
+            model_holds = m == line_search[0]
             xi = m * xi
             motion = step_pixels(xi, f, depth)
             ends = None  # the step is taken on its rendered cost, without a derivative pass, and the stage ends
@@ -251,10 +278,13 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 stats.step_px = motion
                 stats.stopped = ends
                 break
-        rendered = float(lc[j]) if line_search else math.nan
+        rendered = float(lc[j]) if line_search and not direct else math.nan
+        linear = -float(g @ xi)
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
+            if direct:  # a longer step would have paid: the next trial is line-searched
+                model_holds = not longer_pays(cost - c2, linear, LONGER_FROM)
             negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.cost_rendered = rendered

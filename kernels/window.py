@@ -46,32 +46,38 @@ def window_weights() -> list[float]:
 
 
 _W = window_weights()
-_WW = [[wi * wj for wj in _W] for wi in _W]  # 2D window (products in double, stored as f32 in the kernel)
 
 
 @functools.cache
 def query_stats_kernel():
     """Statistics of the query ``q`` [H, W, 3] into slot ``slot`` of ``out`` [Q, H, W, 3, NQ]: windowed mean,
-    windowed variance and the pixel itself, per channel."""
+    windowed variance and the pixel itself, per channel; the window is separable, so a horizontal pass into
+    ``tmp`` [H, W, 3, 2] (q and q^2 filtered along rows) and a vertical one (as the rendering's,
+    :func:`horizontal` and :func:`vertical_moments`)."""
 
     @ti.kernel
     def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), slot: ti.i32,
-                    out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
+                    tmp: ti.types.ndarray(dtype=ti.f32, ndim=4), out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
         H = q.shape[0]
         W = q.shape[1]
-        ww = ti.Matrix(_WW, ti.f32)
         for y, x in ti.ndrange(H, W):
             for c in ti.static(range(3)):
                 m = 0.0
                 m2 = 0.0
-                for i in range(2 * RADIUS + 1):  # a run-time loop: a kernel 11x smaller to load, same sums
+                for j in ti.static(range(2 * RADIUS + 1)):
+                    v = q[y, ti.min(ti.max(x + j - RADIUS, 0), W - 1), c]
+                    m += ti.static(_W[j]) * v
+                    m2 += ti.static(_W[j]) * v * v
+                tmp[y, x, c, 0] = m
+                tmp[y, x, c, 1] = m2
+        for y, x in ti.ndrange(H, W):
+            for c in ti.static(range(3)):
+                m = 0.0
+                m2 = 0.0
+                for i in ti.static(range(2 * RADIUS + 1)):
                     yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
-                    for j in ti.static(range(2 * RADIUS + 1)):
-                        xx = ti.min(ti.max(x + j - RADIUS, 0), W - 1)
-                        v = q[yy, xx, c]
-                        w = ww[i, j]
-                        m += w * v
-                        m2 += w * v * v
+                    m += ti.static(_W[i]) * tmp[yy, x, c, 0]
+                    m2 += ti.static(_W[i]) * tmp[yy, x, c, 1]
                 out[slot, y, x, c, 0] = m
                 out[slot, y, x, c, 1] = ti.max(m2 - m * m, 0.0)
                 out[slot, y, x, c, 2] = q[y, x, c]

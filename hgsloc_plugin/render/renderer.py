@@ -297,8 +297,8 @@ class Renderer:
         """Query statistics for :meth:`window_cost`: windowed mean and variance per channel, on the device
         ([1, H, W, 3, window.NQ]: one query; ``image`` [H, W, 3] float in [0, 1])."""
         q = Renderer.upload_image(image)
-        out = empty(ti.f32, (1, *q.shape[:2], 3, window.NQ))  # the kernel sets every entry
-        launcher(window.query_stats_kernel())(q, 0, out)
+        out = empty(ti.f32, (1, *q.shape[:2], 3, window.NQ))  # the kernel sets every entry (and tmp's)
+        launcher(window.query_stats_kernel())(q, 0, empty(ti.f32, (*q.shape[:2], 3, 2)), out)
         return out
 
     @staticmethod

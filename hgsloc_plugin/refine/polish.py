@@ -190,7 +190,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
 
     def failed(motion: float) -> bool:
         """A trial of ``motion`` pixels that did not lower the cost: more damping, the next trial at most
-        ``RETRY_SHRINK`` of it; True when that makes ``max_failures`` in a row (the polish stops)."""
+        ``RETRY_SHRINK`` of it and line-searched (the model does not hold); True when that makes ``max_failures``
+        in a row (the polish stops)."""
         nonlocal lam, retry_limit, failures, model_holds
         lam = min(lam * 10.0, LAMBDA_MAX)
         model_holds = False

@@ -615,6 +615,7 @@ def test_the_last_stage_takes_model_steps_straight_to_their_pass():
             runs[overstate, conv] = (pose, st, fake.calls)
     (pose, st, calls), (pose_ls, st_ls, _) = runs[1.0, FINAL], runs[1.0, LINE_SEARCHED]
     assert calls[:2] == ["pass", "pass"]  # the start's pass, then a trial without a render
+    assert math.isnan(st.cost_rendered) and math.isfinite(st_ls.cost_rendered)  # the rule renders the direct one
     assert st.renders < st_ls.renders and st.passes <= st_ls.passes + 1 and pose.errors_to(pose_ls)[0] < 1e-4
     (_, st4, calls4), (_, st4_ls, _) = runs[4.0, FINAL], runs[4.0, LINE_SEARCHED]
     assert calls4[:3] == ["pass", "pass", "render"]  # one direct trial, then line-searched
@@ -623,6 +624,7 @@ def test_the_last_stage_takes_model_steps_straight_to_their_pass():
     pose, st = polish(fake, cam, None, start, depth=2.0, iterations=10, allowed=lambda p: True, max_failures=3)
     assert pose is start and st.accepted_steps == 0
     assert fake.calls[:3] == ["pass", "pass", "render"] and fake.calls.count("pass") == 2
+
 
 def assert_same_to_rounding(images, images2, system, system2) -> None:
     """Two derivative passes of the same poses agree to float32 rounding: colour and alpha within 1e-5, the colour

@@ -280,12 +280,11 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 stats.stopped = ends
                 break
         rendered = float(lc[j]) if line_search and not direct else math.nan
-        linear = -float(g @ xi)
         c2, g2, H2 = evaluate(trial)
         stats.passes += 1
         if c2 < cost:
-            if direct:  # a longer step would have paid: the next trial is line-searched
-                model_holds = not longer_pays(cost - c2, linear, LONGER_FROM)
+            if direct:  # a longer step would have paid (the slope g.xi of the pose before): line-search the next
+                model_holds = not longer_pays(cost - c2, -float(g @ xi), LONGER_FROM)
             negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.cost_rendered = rendered

@@ -118,9 +118,42 @@ def _horizontal_at(rgb: ti.template(), qstats: ti.template(), qi, b, y, x, W, ou
 
 
 @ti.func
+def _horizontal_row(rgb: ti.template(), qstats: ti.template(), qi, b, y, W, out: ti.template()):
+    """:func:`horizontal` along one row, channel by channel: the window's taps slide along the row in registers
+    (one load of the rendering and of the query a pixel instead of one a tap); the terms and their order are
+    :func:`_horizontal_at`'s (the compiler may fuse the multiply-adds its own way: float32 rounding)."""
+    for c in range(3):
+        r = ti.Vector([0.0] * (2 * RADIUS + 1))
+        q = ti.Vector([0.0] * (2 * RADIUS + 1))
+        for j in ti.static(range(2 * RADIUS + 1)):
+            xx = ti.min(ti.max(j - RADIUS, 0), W - 1)
+            r[j] = rgb[b, y, xx, c]
+            q[j] = qstats[qi, y, xx, c, 2]
+        for x in range(W):
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for j in ti.static(range(2 * RADIUS + 1)):
+                w = ti.static(_W[j])
+                s1 += w * r[j]
+                s2 += w * r[j] * r[j]
+                s3 += w * r[j] * q[j]
+            out[b, y, x, c, 0] = s1
+            out[b, y, x, c, 1] = s2
+            out[b, y, x, c, 2] = s3
+            for j in ti.static(range(2 * RADIUS)):
+                r[j] = r[j + 1]
+                q[j] = q[j + 1]
+            xx = ti.min(x + RADIUS + 1, W - 1)
+            r[2 * RADIUS] = rgb[b, y, xx, c]
+            q[2 * RADIUS] = qstats[qi, y, xx, c, 2]
+
+
+@ti.func
 def horizontal(rgb: ti.template(), qstats: ti.template(), query_index: ti.template(), num_poses, out: ti.template()):
     """First (horizontal) window pass over the rendering: out [B, H, W, 3, 3] = filtered r, r^2, r q per channel.
-    On the CPU one task per image row (``grain.py``: no index division per pixel), elsewhere one per pixel."""
+    On the CPU one task per image row (``grain.py``: no index division per pixel), its taps sliding along the row
+    (:func:`_horizontal_row`); elsewhere one task per pixel."""
     H = rgb.shape[1]
     W = rgb.shape[2]
     stride = ti.static(spread())
@@ -128,9 +161,7 @@ def horizontal(rgb: ti.template(), qstats: ti.template(), query_index: ti.templa
         for task in range(num_poses * H * stride):
             is_item, b, y = item(task, stride, H)
             if is_item:
-                qi = query_index[b]
-                for x in range(W):
-                    _horizontal_at(rgb, qstats, qi, b, y, x, W, out)
+                _horizontal_row(rgb, qstats, query_index[b], b, y, W, out)
     else:
         for b, y, x in ti.ndrange(num_poses, H, W):
             _horizontal_at(rgb, qstats, query_index[b], b, y, x, W, out)

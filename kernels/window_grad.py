@@ -87,64 +87,124 @@ def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.templat
 
 @functools.cache
 def window_filter(axis: int, transpose: bool, channels: int):
-    """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: rows / y, 1: columns /
-    x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each input pixel
-    gives to the outputs: at the borders the clamped taps' weights add up). On the CPU one task per image row
-    (``grain.py``), elsewhere one per pixel: the same numbers."""
+    """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: columns, along y; 1:
+    rows, along x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each
+    input pixel gives to the outputs: at the borders the clamped taps' weights add up). On the CPU one task per
+    image row (``grain.py``), whose row pass slides its taps along the row in registers (:func:`slide`: one load a
+    pixel and channel instead of one a tap); elsewhere one task per pixel: the same sums to float32 rounding."""
 
     @ti.func
-    def load(src: ti.template(), b, y, x, q):
-        v = ti.Vector([0.0] * channels)
-        for c in ti.static(range(channels)):
-            if ti.static(axis == 1):
-                v[c] = src[b, y, q, c]
-            else:
-                v[c] = src[b, q, x, c]
+    def get(src: ti.template(), b, line, pos, c):
+        """Channel ``c`` at position ``pos`` along the pass of line ``line``: row ``line``'s x for axis 1, column
+        ``line``'s y for axis 0."""
+        v = 0.0
+        if ti.static(axis == 1):
+            v = src[b, line, pos, c]
+        else:
+            v = src[b, pos, line, c]
         return v
 
     @ti.func
-    def at(src: ti.template(), b, y, x, H, W, dst: ti.template()):
-        L = W if ti.static(axis == 1) else H
-        pos = x if ti.static(axis == 1) else y
+    def put(dst: ti.template(), b, line, pos, c, v):
+        if ti.static(axis == 1):
+            dst[b, line, pos, c] = v
+        else:
+            dst[b, pos, line, c] = v
+
+    @ti.func
+    def border(src: ti.template(), b, line, pos, L, c):
+        """The transposed pass at a line's first or last position (``pos`` 0 or L - 1), where taps clamp."""
+        acc = 0.0
+        if L == 1:
+            acc = get(src, b, line, 0, c)
+        elif pos == 0:  # every tap that clamps to 0: from q <= RADIUS, taps j <= RADIUS - q
+            for q in ti.static(range(RADIUS + 1)):
+                if q < L:
+                    acc += ti.static(_CUM[RADIUS - q]) * get(src, b, line, q, c)
+        else:  # taps that clamp to L - 1: from q = L - 1 - s, taps j >= s + RADIUS
+            for s in ti.static(range(RADIUS + 1)):
+                q = L - 1 - s
+                if q >= 0:
+                    acc += ti.static(_TAIL[s + RADIUS]) * get(src, b, line, q, c)
+        return acc
+
+    @ti.func
+    def load(src: ti.template(), b, line, pos):
+        v = ti.Vector([0.0] * channels)
+        for c in ti.static(range(channels)):
+            v[c] = get(src, b, line, pos, c)
+        return v
+
+    @ti.func
+    def at(src: ti.template(), b, line, pos, L, dst: ti.template()):
+        """The pass at one pixel, every channel at each tap."""
         acc = ti.Vector([0.0] * channels)
         if ti.static(not transpose):
             for j in ti.static(range(2 * RADIUS + 1)):
-                q = ti.min(ti.max(pos + j - RADIUS, 0), L - 1)
-                acc += ti.static(_W[j]) * load(src, b, y, x, q)
+                acc += ti.static(_W[j]) * load(src, b, line, ti.min(ti.max(pos + j - RADIUS, 0), L - 1))
+        elif pos == 0 or pos == L - 1:
+            for c in ti.static(range(channels)):
+                acc[c] = border(src, b, line, pos, L, c)
         else:
-            if L == 1:
-                acc = load(src, b, y, x, 0)
-            elif pos == 0:  # every tap that clamps to 0: from q <= RADIUS, taps j <= RADIUS - q
-                for q in ti.static(range(RADIUS + 1)):
-                    if q < L:
-                        acc += ti.static(_CUM[RADIUS - q]) * load(src, b, y, x, q)
-            elif pos == L - 1:  # taps that clamp to L - 1: from q = L - 1 - s, taps j >= s + RADIUS
-                for s in ti.static(range(RADIUS + 1)):
-                    q = L - 1 - s
-                    if q >= 0:
-                        acc += ti.static(_TAIL[s + RADIUS]) * load(src, b, y, x, q)
-            else:
-                for j in ti.static(range(2 * RADIUS + 1)):
-                    q = pos - j + RADIUS
-                    if 0 <= q and q < L:
-                        acc += ti.static(_W[j]) * load(src, b, y, x, q)
+            for j in ti.static(range(2 * RADIUS + 1)):
+                q = pos - j + RADIUS
+                if 0 <= q and q < L:
+                    acc += ti.static(_W[j]) * load(src, b, line, q)
         for c in ti.static(range(channels)):
-            dst[b, y, x, c] = acc[c]
+            put(dst, b, line, pos, c, acc[c])
+
+    @ti.func
+    def slide(src: ti.template(), b, line, L, dst: ti.template()):
+        """The pass along one line of L pixels (the CPU's rows), channel by channel: ``v[k]`` holds the input at
+        ``pos - RADIUS + k`` (clamped; for the transpose 0 outside the line, whose ends take :func:`border`). The
+        channels are a run-time loop: one copy of the code, not one a channel (compile time)."""
+        for c in range(channels):
+            v = ti.Vector([0.0] * (2 * RADIUS + 1))
+            for k in ti.static(range(2 * RADIUS + 1)):
+                if ti.static(not transpose):
+                    v[k] = get(src, b, line, ti.min(ti.max(k - RADIUS, 0), L - 1), c)
+                elif ti.static(k >= RADIUS):
+                    if k - RADIUS < L:
+                        v[k] = get(src, b, line, k - RADIUS, c)
+            for pos in range(L):
+                acc = 0.0
+                if ti.static(not transpose):
+                    for j in ti.static(range(2 * RADIUS + 1)):
+                        acc += ti.static(_W[j]) * v[j]
+                elif pos == 0 or pos == L - 1:
+                    acc = border(src, b, line, pos, L, c)
+                else:  # tap j of output pos reads input pos - j + RADIUS
+                    for j in ti.static(range(2 * RADIUS + 1)):
+                        acc += ti.static(_W[j]) * v[2 * RADIUS - j]
+                put(dst, b, line, pos, c, acc)
+                for k in ti.static(range(2 * RADIUS)):
+                    v[k] = v[k + 1]
+                nxt = pos + RADIUS + 1
+                if ti.static(not transpose):
+                    v[2 * RADIUS] = get(src, b, line, ti.min(nxt, L - 1), c)
+                else:
+                    v[2 * RADIUS] = get(src, b, line, ti.min(nxt, L - 1), c) if nxt < L else 0.0
 
     @ti.func
     def filt(src: ti.template(), num_poses, dst: ti.template()):
         H = src.shape[1]
         W = src.shape[2]
         stride = ti.static(spread())
-        if ti.static(stride > 1):  # the CPU: one task per image row (grain.py), no index division per pixel
+        if ti.static(stride > 1):  # the CPU: one task per image row (grain.py)
             for task in range(num_poses * H * stride):
                 is_item, b, y = item(task, stride, H)
                 if is_item:
-                    for x in range(W):
-                        at(src, b, y, x, H, W, dst)
+                    if ti.static(axis == 1):
+                        slide(src, b, y, W, dst)
+                    else:
+                        for x in range(W):
+                            at(src, b, x, y, H, dst)
         else:
             for b, y, x in ti.ndrange(num_poses, H, W):
-                at(src, b, y, x, H, W, dst)
+                if ti.static(axis == 1):
+                    at(src, b, y, x, W, dst)
+                else:
+                    at(src, b, x, y, H, dst)
 
     return filt
 

@@ -87,10 +87,11 @@ def _make_shade(config: RasterConfig):
 
 
 @functools.cache
-def image_func(config: RasterConfig):
-    """A ti.func (one task per pixel) writing colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W];
-    arguments (packed, tile_start, isect, isect_base, background, tiles_x, tiles_y, num_poses, out_rgb,
-    out_alpha, out_depth), ``tiles_y`` unused (the signature of :func:`splat_image_func`)."""
+def image_func(config: RasterConfig, depth: bool = True):
+    """A ti.func (one task per pixel) writing colour [B, H, W, 3], alpha [B, H, W], accumulated depth [B, H, W]
+    (not written without ``depth``); arguments (packed, tile_start, isect, isect_base, background, tiles_x,
+    tiles_y, num_poses, out_rgb, out_alpha, out_depth), ``tiles_y`` unused (the signature of
+    :func:`splat_image_func`)."""
     shade = _make_shade(config)
 
     @ti.func
@@ -104,7 +105,8 @@ def image_func(config: RasterConfig):
             for c in ti.static(range(3)):
                 out_rgb[b, py, px, c] = C[c] + T * background[c]
             out_alpha[b, py, px] = 1.0 - T
-            out_depth[b, py, px] = D
+            if ti.static(depth):
+                out_depth[b, py, px] = D
 
     return blend_image
 

@@ -189,16 +189,35 @@ def _add_colour_and_depth(acc: ti.template(), p, col, depth, alpha, capped, T, d
     acc[1][p, 3] += vis * depth
 
 
-def _make_splat_tile(config: RasterConfig):
-    """``splat_walk`` for the image: accumulators (T [tile * tile], (R, G, B, depth) [tile * tile, 4])."""
-    return splat_walk(config, config.tile_size, _colour_and_depth, _add_colour_and_depth)
+@ti.func
+def _colour(packed: ti.template(), aux: ti.template(), b, g):
+    """The colour-only blend's per-Gaussian terms: colour [3] (no extra)."""
+    return colour_of(packed, b, g), 0.0
+
+
+@ti.func
+def _add_colour(acc: ti.template(), p, col, extra, alpha, capped, T, dx, dy, ca, cb, cc):
+    """The colour-only blend's pixel terms: accumulators (T [npx], (R, G, B) [npx, 3])."""
+    vis = alpha * T
+    for c in ti.static(range(3)):
+        acc[1][p, c] += vis * col[c]
+
+
+def _make_splat_tile(config: RasterConfig, depth: bool):
+    """``splat_walk`` for the image: accumulators (T [tile * tile], (R, G, B, depth) [tile * tile, 4]); without
+    ``depth`` the colour alone ([tile * tile, 3])."""
+    if depth:
+        return splat_walk(config, config.tile_size, _colour_and_depth, _add_colour_and_depth)
+    return splat_walk(config, config.tile_size, _colour, _add_colour)
 
 
 @functools.cache
-def splat_image_func(config: RasterConfig):
-    """Tile-parallel (CPU-friendly) twin of :func:`image_func`; same arguments and outputs."""
-    splat_tile = _make_splat_tile(config)
+def splat_image_func(config: RasterConfig, depth: bool = True):
+    """Tile-parallel (CPU-friendly) twin of :func:`image_func`; same arguments and outputs (without ``depth`` the
+    depth image is not accumulated nor written: what a cost needs)."""
+    splat_tile = _make_splat_tile(config, depth)
     tile = config.tile_size
+    nacc = 4 if depth else 3
 
     @ti.func
     def splat_image(packed: ti.template(), tile_start: ti.template(), isect: ti.template(), isect_base: ti.template(),
@@ -211,7 +230,7 @@ def splat_image_func(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, 4)
+                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, nacc)
                 x0, y0 = splat_tile((trans, buf), b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
                 for py in range(y0, ti.min(y0 + tile, H)):
                     for px in range(x0, ti.min(x0 + tile, W)):
@@ -220,7 +239,8 @@ def splat_image_func(config: RasterConfig):
                         for c in ti.static(range(3)):
                             out_rgb[b, py, px, c] = buf[p, c] + T * background[c]
                         out_alpha[b, py, px] = 1.0 - T
-                        out_depth[b, py, px] = buf[p, 3]
+                        if ti.static(depth):
+                            out_depth[b, py, px] = buf[p, 3]
 
     return splat_image
 
@@ -228,7 +248,7 @@ def splat_image_func(config: RasterConfig):
 @functools.cache
 def splat_cost_kernel(config: RasterConfig):
     """Tile-parallel twin of :func:`cost_kernel`; writes statistics per tile [B, tiles_y, tiles_x, NSTAT]."""
-    splat_tile = _make_splat_tile(config)
+    splat_tile = _make_splat_tile(config, depth=False)
     tile = config.tile_size
 
     @ti.kernel
@@ -252,7 +272,7 @@ def splat_cost_kernel(config: RasterConfig):
         for task in range(num_poses * nt * stride):
             is_item, b, t = item(task, stride, nt)
             if is_item:
-                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, 4)
+                trans, buf = ti.Vector.zero(ti.f32, tile * tile), ti.Matrix.zero(ti.f32, tile * tile, 3)
                 x0, y0 = splat_tile((trans, buf), b, t, tiles_x, W, H, packed, packed, tile_start, isect, isect_base)
                 st = ti.Vector([0.0] * NSTAT)
                 bg = ti.Vector([background[0], background[1], background[2]])

@@ -230,11 +230,11 @@ def _vertical_cost(with_luminance: bool):
 @functools.cache
 def window_cost_kernel(config, splat: bool, with_luminance: bool):
     """B poses' windowed similarity in one launch, after their projection and tile sort: the image blend
-    (``splat.splat_image_func`` or ``blend.image_func``, its arguments first) into rgb [B, H, W, 3], alpha and
-    depth [B, H, W], the horizontal pass into hbuf [B, H, W, 3, 3], the vertical pass's per-row sums into rows
-    [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64 (sum of the per-pixel values, valid
-    pixels; a host array: no read-back launch)."""
-    blend = splat_image_func(config) if splat else image_func(config)
+    (``splat.splat_image_func`` or ``blend.image_func``, its arguments first) into rgb [B, H, W, 3] and alpha
+    [B, H, W] (``depth`` is not written: the cost needs none), the horizontal pass into hbuf [B, H, W, 3, 3], the
+    vertical pass's per-row sums into rows [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64
+    (sum of the per-pixel values, valid pixels; a host array: no read-back launch)."""
+    blend = splat_image_func(config, depth=False) if splat else image_func(config, depth=False)
     vertical = _vertical_cost(with_luminance)
     f32, i32 = ti.f32, ti.i32
 

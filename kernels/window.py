@@ -48,39 +48,80 @@ def window_weights() -> list[float]:
 _W = window_weights()
 
 
+@ti.func
+def _query_row(q: ti.template(), y, W, tmp: ti.template()):
+    """The query statistics' horizontal pass along row ``y`` (the CPU's), channel by channel, its taps sliding
+    along the row in registers as :func:`_horizontal_row`'s."""
+    for c in range(3):
+        v = ti.Vector([0.0] * (2 * RADIUS + 1))
+        for j in ti.static(range(2 * RADIUS + 1)):
+            v[j] = q[y, ti.min(ti.max(j - RADIUS, 0), W - 1), c]
+        for x in range(W):
+            m = 0.0
+            m2 = 0.0
+            for j in ti.static(range(2 * RADIUS + 1)):
+                m += ti.static(_W[j]) * v[j]
+                m2 += ti.static(_W[j]) * v[j] * v[j]
+            tmp[y, x, c, 0] = m
+            tmp[y, x, c, 1] = m2
+            for j in ti.static(range(2 * RADIUS)):
+                v[j] = v[j + 1]
+            v[2 * RADIUS] = q[y, ti.min(x + RADIUS + 1, W - 1), c]
+
+
+@ti.func
+def _query_horizontal_at(q: ti.template(), y, x, W, tmp: ti.template()):
+    """The query statistics' horizontal pass at one pixel (one task per pixel)."""
+    for c in ti.static(range(3)):
+        m = 0.0
+        m2 = 0.0
+        for j in ti.static(range(2 * RADIUS + 1)):
+            v = q[y, ti.min(ti.max(x + j - RADIUS, 0), W - 1), c]
+            m += ti.static(_W[j]) * v
+            m2 += ti.static(_W[j]) * v * v
+        tmp[y, x, c, 0] = m
+        tmp[y, x, c, 1] = m2
+
+
+@ti.func
+def _query_vertical_at(q: ti.template(), tmp: ti.template(), slot, y, x, H, out: ti.template()):
+    """The query statistics' vertical pass at one pixel, into slot ``slot`` of ``out``."""
+    for c in ti.static(range(3)):
+        m = 0.0
+        m2 = 0.0
+        for i in ti.static(range(2 * RADIUS + 1)):
+            yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
+            m += ti.static(_W[i]) * tmp[yy, x, c, 0]
+            m2 += ti.static(_W[i]) * tmp[yy, x, c, 1]
+        out[slot, y, x, c, 0] = m
+        out[slot, y, x, c, 1] = ti.max(m2 - m * m, 0.0)
+        out[slot, y, x, c, 2] = q[y, x, c]
+
+
 @functools.cache
 def query_stats_kernel():
     """Statistics of the query ``q`` [H, W, 3] into slot ``slot`` of ``out`` [Q, H, W, 3, NQ]: windowed mean,
     windowed variance and the pixel itself, per channel; the window is separable, so a horizontal pass into
-    ``tmp`` [H, W, 3, 2] (q and q^2 filtered along rows) and a vertical one (as the rendering's,
-    :func:`horizontal` and :func:`vertical_moments`)."""
+    ``tmp`` [H, W, 3, 2] (q and q^2 filtered along rows) and a vertical one (as the rendering's, :func:`horizontal`
+    and :func:`vertical_moments`). On the CPU the horizontal pass runs one task per row (``grain.py``), its taps
+    sliding along the row (:func:`_query_row`); elsewhere, and for the vertical pass, one task per pixel."""
 
     @ti.kernel
     def query_stats(q: ti.types.ndarray(dtype=ti.f32, ndim=3), slot: ti.i32,
                     tmp: ti.types.ndarray(dtype=ti.f32, ndim=4), out: ti.types.ndarray(dtype=ti.f32, ndim=5)):
         H = q.shape[0]
         W = q.shape[1]
+        stride = ti.static(spread())
+        if ti.static(stride > 1):
+            for task in range(H * stride):
+                is_item, _, y = item(task, stride, H)
+                if is_item:
+                    _query_row(q, y, W, tmp)
+        else:
+            for y, x in ti.ndrange(H, W):
+                _query_horizontal_at(q, y, x, W, tmp)
         for y, x in ti.ndrange(H, W):
-            for c in ti.static(range(3)):
-                m = 0.0
-                m2 = 0.0
-                for j in ti.static(range(2 * RADIUS + 1)):
-                    v = q[y, ti.min(ti.max(x + j - RADIUS, 0), W - 1), c]
-                    m += ti.static(_W[j]) * v
-                    m2 += ti.static(_W[j]) * v * v
-                tmp[y, x, c, 0] = m
-                tmp[y, x, c, 1] = m2
-        for y, x in ti.ndrange(H, W):
-            for c in ti.static(range(3)):
-                m = 0.0
-                m2 = 0.0
-                for i in ti.static(range(2 * RADIUS + 1)):
-                    yy = ti.min(ti.max(y + i - RADIUS, 0), H - 1)
-                    m += ti.static(_W[i]) * tmp[yy, x, c, 0]
-                    m2 += ti.static(_W[i]) * tmp[yy, x, c, 1]
-                out[slot, y, x, c, 0] = m
-                out[slot, y, x, c, 1] = ti.max(m2 - m * m, 0.0)
-                out[slot, y, x, c, 2] = q[y, x, c]
+            _query_vertical_at(q, tmp, slot, y, x, H, out)
 
     return query_stats
 

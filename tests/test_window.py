@@ -1,7 +1,7 @@
-"""The window's separable passes (``kernels/window.py::horizontal``, ``kernels/window_grad.py::window_filter``)
-against NumPy twins in float64, on image sizes from one pixel to a few windows, where the CPU's sliding passes
-meet both borders at once; in both layouts: the CPU's (one task per row) and the GPU's (one per pixel, compiled
-here on the CPU with ``spread`` patched to 1).
+"""The window's separable passes (``kernels/window.py``: the query statistics and ``horizontal``;
+``kernels/window_grad.py::window_filter``) against NumPy twins in float64, on image sizes from one pixel to a few
+windows, where the CPU's sliding passes meet both borders at once; in both layouts: the CPU's (one task per row)
+and the GPU's (one per pixel, compiled here on the CPU with ``spread`` patched to 1).
 
 No ``from __future__ import annotations`` here: Taichi reads the kernel annotations as objects."""
 
@@ -92,3 +92,25 @@ def test_horizontal_pass_filters_the_rendering_its_square_and_its_product_with_t
     q = qstats[query_index, ..., 2].astype(np.float64)
     for k, field in enumerate([r, r * r, r * q]):
         np.testing.assert_allclose(out[..., k], np.einsum("pq,byqc->bypc", m, field), rtol=0, atol=2e-6)
+
+
+@functools.cache
+def query_stats_kernel(layout: str):
+    hp.init()
+    return window.query_stats_kernel.__wrapped__()  # not the cached one: per layout
+
+
+@pytest.mark.parametrize("h, w", SIZES)
+def test_query_statistics_are_the_windowed_mean_and_variance(layout, h, w):
+    q = np.random.default_rng(h * 100 + w).uniform(size=(h, w, 3)).astype(np.float32)
+    out = np.full((2, h, w, 3, NQ), np.nan, np.float32)
+    tmp = np.full((h, w, 3, 2), np.nan, np.float32)
+    query_stats_kernel(layout)(q, 1, tmp, out)
+    my, mx = window_matrix(h), window_matrix(w)
+    q64 = q.astype(np.float64)
+    mean = np.einsum("pq,qxc->pxc", my, np.einsum("pq,yqc->ypc", mx, q64))
+    second = np.einsum("pq,qxc->pxc", my, np.einsum("pq,yqc->ypc", mx, q64 * q64))
+    np.testing.assert_allclose(out[1, ..., 0], mean, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(out[1, ..., 1], np.maximum(second - mean * mean, 0.0), rtol=0, atol=4e-6)
+    np.testing.assert_array_equal(out[1, ..., 2], q)
+    assert np.isnan(out[0]).all()  # the other slot untouched

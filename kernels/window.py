@@ -36,6 +36,7 @@ RADIUS = 5
 C1 = 0.01 ** 2
 C2 = 0.03 ** 2
 NQ = 3  # per channel query statistics: mu_q, s_qq, q
+BLOCK = 8  # rows per task of the CPU's column passes (block_moments, window_grad.window_filter; 4, 16 slower)
 
 
 def window_weights() -> list[float]:
@@ -224,11 +225,26 @@ def vertical_moments(hbuf: ti.template(), b, y, x, c, H):
 
 
 @ti.func
-def contrast_structure(hbuf: ti.template(), qstats: ti.template(), qi, b, y, x, c, H):
-    """The cs term at one pixel and channel of pose ``b`` against query slot ``qi``, ``(2 s_rq + C2) / D`` with
-    ``D = s_rr + s_qq + C2``: returns (cs, D, windowed rendering mean, windowed query mean); shared by the cost
-    and its derivative (``window_grad.py``)."""
-    m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
+def block_moments(hbuf: ti.template(), b, y0, x, c, H):
+    """:func:`vertical_moments` at rows [y0, y0 + BLOCK) of column ``x`` (the CPU's vertical passes): M [BLOCK, 3],
+    each input row of the block's window loaded once for the rows it reaches; the same taps in the same order.
+    Rows past the image get the clamped rows' numbers (for the caller to leave out)."""
+    M = ti.Matrix.zero(ti.f32, BLOCK, 3)
+    for s in ti.static(range(BLOCK + 2 * RADIUS)):  # input row y0 - RADIUS + s, clamped
+        yy = ti.min(ti.max(y0 - RADIUS + s, 0), H - 1)
+        h = ti.Vector([hbuf[b, yy, x, c, 0], hbuf[b, yy, x, c, 1], hbuf[b, yy, x, c, 2]])
+        for r in ti.static(range(BLOCK)):  # output row y0 + r reads it with tap s - r
+            if ti.static(0 <= s - r <= 2 * RADIUS):
+                for k in ti.static(range(3)):
+                    M[r, k] += ti.static(_W[s - r]) * h[k]
+    return M
+
+
+@ti.func
+def cs_of_moments(m, m2, mrq, qstats: ti.template(), qi, y, x, c):
+    """The cs term at one pixel and channel from the rendering's windowed r, r^2 and r q against query slot
+    ``qi``, ``(2 s_rq + C2) / D`` with ``D = s_rr + s_qq + C2``: returns (cs, D, windowed rendering mean,
+    windowed query mean)."""
     mq = qstats[qi, y, x, c, 0]
     s_rr = ti.max(m2 - m * m, 0.0)
     s_rq = mrq - m * mq
@@ -236,36 +252,94 @@ def contrast_structure(hbuf: ti.template(), qstats: ti.template(), qi, b, y, x, 
     return (2.0 * s_rq + C2) / den, den, m, mq
 
 
-def _vertical_cost(with_luminance: bool):
-    """Second (vertical) pass, per-pixel SSIM or cs, per-row sums: rows [B, H, 1, 2] = (sum of values, pixels),
-    the run-statistics layout that ``blend.reduce_rows`` sums per pose."""
+@ti.func
+def contrast_structure(hbuf: ti.template(), qstats: ti.template(), qi, b, y, x, c, H):
+    """:func:`cs_of_moments` at one pixel and channel of pose ``b``, from the horizontal pass ``hbuf``; shared by the
+    cost and its derivative (``window_grad.py``)."""
+    m, m2, mrq = vertical_moments(hbuf, b, y, x, c, H)
+    return cs_of_moments(m, m2, mrq, qstats, qi, y, x, c)
+
+
+@ti.func
+def _no_pixel_outputs(cs, den, m, mq, valid, b, y, x, c, outs: ti.template()):
+    pass
+
+
+def row_sums(value, pixel=None):
+    """The vertical pass from the horizontal pass ``hbuf`` [B, H, W, 3, 3] to per-row sums rows [B, H, 1, >= 2]:
+    fields 0, 1 = (sum over the row's valid pixels, alpha >= ``mask_alpha``, of the channels' mean of
+    ``value(cs, m, mq)``, valid pixels), the run-statistics layout that ``blend.reduce_rows`` sums per pose; with
+    ``pixel``, also ``pixel(cs, den, m, mq, valid, b, y, x, c, outs)`` at every pixel and channel (``outs``: the
+    caller's arrays; both ti.funcs). On the CPU one task per ``BLOCK`` rows (:func:`block_moments`), elsewhere one
+    per row; each row's sum in the order of its pixels either way. Returns a ti.func ``(hbuf, qstats, query_index,
+    alpha, mask_alpha, num_poses, rows, outs)``."""
+    at_pixel = pixel if pixel is not None else _no_pixel_outputs
 
     @ti.func
-    def vertical(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(),
-                 mask_alpha, num_poses, rows: ti.template()):
+    def run(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(), mask_alpha,
+            num_poses, rows: ti.template(), outs: ti.template()):
         H = hbuf.shape[1]
         W = hbuf.shape[2]
-        stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
-        for task in range(num_poses * H * stride):
-            is_item, b, y = item(task, stride, H)
+        stride = ti.static(spread())
+        nblk = (H + BLOCK - 1) // BLOCK if ti.static(stride > 1) else H
+        for task in range(num_poses * nblk * stride):
+            is_item, b, blk = item(task, stride, nblk)
             if is_item:
                 qi = query_index[b]
-                tot = 0.0
-                cnt = 0.0
-                for x in range(W):
-                    if alpha[b, y, x] >= mask_alpha:
+                if ti.static(stride > 1):  # the CPU (grain.py): rows [y0, y0 + BLOCK)
+                    y0 = blk * BLOCK
+                    tot = ti.Vector([0.0] * BLOCK)
+                    cnt = ti.Vector([0.0] * BLOCK)
+                    for x in range(W):
+                        v = ti.Vector([0.0] * BLOCK)
+                        for c in range(3):
+                            M = block_moments(hbuf, b, y0, x, c, H)
+                            for r in ti.static(range(BLOCK)):
+                                y = ti.min(y0 + r, H - 1)  # a row past the image: computed, not kept
+                                cs, den, m, mq = cs_of_moments(M[r, 0], M[r, 1], M[r, 2], qstats, qi, y, x, c)
+                                v[r] += value(cs, m, mq)
+                                if y0 + r < H:
+                                    at_pixel(cs, den, m, mq, alpha[b, y, x] >= mask_alpha, b, y, x, c, outs)
+                        for r in ti.static(range(BLOCK)):
+                            if y0 + r < H:
+                                if alpha[b, y0 + r, x] >= mask_alpha:
+                                    tot[r] += v[r] / 3.0
+                                    cnt[r] += 1.0
+                    for r in ti.static(range(BLOCK)):
+                        if y0 + r < H:
+                            rows[b, y0 + r, 0, 0] = tot[r]
+                            rows[b, y0 + r, 0, 1] = cnt[r]
+                else:  # one row
+                    y = blk
+                    tot = 0.0
+                    cnt = 0.0
+                    for x in range(W):
+                        valid = alpha[b, y, x] >= mask_alpha
                         v = 0.0
                         for c in ti.static(range(3)):
-                            cs, _, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
-                            if ti.static(with_luminance):
-                                cs *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
-                            v += cs
-                        tot += v / 3.0
-                        cnt += 1.0
-                rows[b, y, 0, 0] = tot
-                rows[b, y, 0, 1] = cnt
+                            cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
+                            v += value(cs, m, mq)
+                            at_pixel(cs, den, m, mq, valid, b, y, x, c, outs)
+                        if valid:
+                            tot += v / 3.0
+                            cnt += 1.0
+                    rows[b, y, 0, 0] = tot
+                    rows[b, y, 0, 1] = cnt
 
-    return vertical
+    return run
+
+
+def _vertical_cost(with_luminance: bool):
+    """:func:`row_sums` of the per-pixel cs, or with ``with_luminance`` SSIM (cs times the luminance term)."""
+
+    @ti.func
+    def value(cs, m, mq):
+        v = cs
+        if ti.static(with_luminance):
+            v *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
+        return v
+
+    return row_sums(value)
 
 
 @functools.cache
@@ -290,7 +364,7 @@ def window_cost_kernel(config, splat: bool, with_luminance: bool):
                     out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
         blend(packed, tile_start, isect, isect_base, background, tiles_x, tiles_y, num_poses, rgb, alpha, depth)
         horizontal(rgb, qstats, query_index, num_poses, hbuf)
-        vertical(hbuf, qstats, query_index, alpha, mask_alpha, num_poses, rows)
+        vertical(hbuf, qstats, query_index, alpha, mask_alpha, num_poses, rows, ())
         reduce_rows(rows, num_poses, out)
 
     return window_cost

@@ -31,7 +31,7 @@ import taichi as ti
 from .blend import reduce_rows
 from .grain import item, spread
 from .pose_grad import NXI
-from .window import RADIUS, contrast_structure, horizontal, window_weights
+from .window import BLOCK, RADIUS, horizontal, row_sums, window_weights
 
 _W = window_weights()
 
@@ -41,57 +41,47 @@ NSYS = NH + NXI  # per-row record: JtJ triangle, then the gradient
 ROW_SYS = 2  # in the per-row sums [B, H, 1, ROW_SYS + NSYS]: cs_terms' two, then the system's (one reduction)
 _CUM = [sum(_W[:m + 1]) for m in range(2 * RADIUS + 1)]  # sum_{j <= m} w_j
 _TAIL = [sum(_W[m:]) for m in range(2 * RADIUS + 1)]  # sum_{j >= m} w_j
+_WINDOW_ROWS = list(range(BLOCK + 2 * RADIUS))  # the input rows of a block of output rows
 
 
 @ti.func
-def cs_terms(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(), mask_alpha,
-             num_poses, weights: ti.template(), means: ti.template(), rows: ti.template()):
-    """Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal``):
-    weights [B, H, W, NW] (A = 1/D, B = N/D^2 per channel c at 2c, 2c + 1; G = max(cs, 0) / D at 6 + c; 0 on
-    invalid pixels), means [B, H, W, 6]
-    (m_r, dbar = m_r - m_q per channel), and rows [B, H, 1, >= 2]: fields 0, 1 = (sum of the channel-mean cs,
-    valid pixels), the same numbers as ``window._vertical_cost(False)``."""
-    H = hbuf.shape[1]
-    W = hbuf.shape[2]
-    stride = ti.static(spread())  # one task per image row on the CPU (grain.py)
-    for task in range(num_poses * H * stride):
-        is_item, b, y = item(task, stride, H)
-        if is_item:
-            qi = query_index[b]
-            tot = 0.0
-            cnt = 0.0
-            for x in range(W):
-                valid = alpha[b, y, x] >= mask_alpha
-                v = 0.0
-                for c in ti.static(range(3)):
-                    cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
-                    v += cs
-                    a = 0.0
-                    bw = 0.0
-                    gw = 0.0
-                    if valid:
-                        a = 1.0 / den
-                        bw = (1.0 - cs) / den
-                        gw = ti.max(cs, 0.0) / den
-                    weights[b, y, x, 2 * c] = a
-                    weights[b, y, x, 2 * c + 1] = bw
-                    weights[b, y, x, 6 + c] = gw
-                    means[b, y, x, 2 * c] = m
-                    means[b, y, x, 2 * c + 1] = m - mq
-                if valid:
-                    tot += v / 3.0
-                    cnt += 1.0
-            rows[b, y, 0, 0] = tot
-            rows[b, y, 0, 1] = cnt
+def _pixel_weights(cs, den, m, mq, valid, b, y, x, c, outs: ti.template()):
+    """:func:`cs_terms`' outputs ``outs`` = (weights, means) at one pixel and channel from its cs term."""
+    a = 0.0
+    bw = 0.0
+    gw = 0.0
+    if valid:
+        a = 1.0 / den
+        bw = (1.0 - cs) / den
+        gw = ti.max(cs, 0.0) / den
+    outs[0][b, y, x, 2 * c] = a
+    outs[0][b, y, x, 2 * c + 1] = bw
+    outs[0][b, y, x, 6 + c] = gw
+    outs[1][b, y, x, 2 * c] = m
+    outs[1][b, y, x, 2 * c + 1] = m - mq
+
+
+@ti.func
+def _cs(cs, m, mq):
+    return cs
+
+
+#: Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal``): weights [B, H, W,
+#: NW] (A = 1/D, B = N/D^2 per channel c at 2c, 2c + 1; G = max(cs, 0) / D at 6 + c; 0 on invalid pixels), means
+#: [B, H, W, 6] (m_r, dbar = m_r - m_q per channel), passed as ``outs``, and rows [B, H, 1, >= 2]: fields 0, 1 =
+#: (sum of the channel-mean cs, valid pixels), the same numbers as ``window._vertical_cost(False)``
+#: (``window.row_sums``).
+cs_terms = row_sums(_cs, _pixel_weights)
 
 
 @functools.cache
 def window_filter(axis: int, transpose: bool, channels: int):
     """One separable pass of the window over images [B, H, W, channels] along ``axis`` (0: columns, along y; 1:
     rows, along x), border coordinates clamped as in ``window.py``; ``transpose``: the pass's transpose (what each
-    input pixel gives to the outputs: at the borders the clamped taps' weights add up). On the CPU one task per
-    image row (``grain.py``), whose row pass slides its taps along the row in registers (:func:`slide`: one load a
-    pixel and channel instead of one a tap); elsewhere one task per pixel: the same sums to float32 rounding."""
+    input pixel gives to the outputs: at the borders the clamped taps' weights add up). On the CPU (``grain.py``)
+    a row pass runs one task per row, its taps sliding along the row in registers (:func:`slide`), a column pass
+    one task per ``BLOCK`` rows (:func:`column_block`), each loading an input once for the outputs it reaches;
+    elsewhere one task per pixel (:func:`at`): the same sums to float32 rounding."""
 
     @ti.func
     def get(src: ti.template(), b, line, pos, c):
@@ -186,19 +176,50 @@ def window_filter(axis: int, transpose: bool, channels: int):
                     v[2 * RADIUS] = get(src, b, line, ti.min(nxt, L - 1), c) if nxt < L else 0.0
 
     @ti.func
+    def column_block(src: ti.template(), b, y0, H, W, dst: ti.template()):
+        """The column pass at rows [y0, y0 + BLOCK) of every column (the CPU's): each input row of the block's
+        window is loaded once for the BLOCK outputs it reaches (``BLOCK + 2 RADIUS`` loads a column and channel
+        instead of ``11 BLOCK``); the same taps in the same order as :func:`at`. The transpose takes 0 outside the
+        image here: its first and last rows are :func:`border`'s (``filt`` writes them after)."""
+        for x in range(W):
+            for c in range(channels):
+                acc = ti.Vector([0.0] * BLOCK)
+                for s in ti.static(_WINDOW_ROWS if not transpose else _WINDOW_ROWS[::-1]):
+                    q = y0 - RADIUS + s  # input row s of the block's window
+                    v = get(src, b, x, ti.min(ti.max(q, 0), H - 1), c)
+                    if ti.static(transpose):
+                        v = ti.select(0 <= q and q < H, v, 0.0)
+                    for r in ti.static(range(BLOCK)):  # output row y0 + r: its tap s - r (transposed: the mirror)
+                        if ti.static(0 <= s - r <= 2 * RADIUS):
+                            acc[r] += ti.static(_W[s - r] if not transpose else _W[2 * RADIUS - (s - r)]) * v
+                for r in ti.static(range(BLOCK)):
+                    if y0 + r < H:
+                        put(dst, b, x, y0 + r, c, acc[r])
+
+    @ti.func
     def filt(src: ti.template(), num_poses, dst: ti.template()):
         H = src.shape[1]
         W = src.shape[2]
         stride = ti.static(spread())
-        if ti.static(stride > 1):  # the CPU: one task per image row (grain.py)
+        nblk = (H + BLOCK - 1) // BLOCK
+        if ti.static(stride > 1 and axis == 0):  # the CPU: one task per block of rows
+            for task in range(num_poses * nblk * stride):
+                is_item, b, blk = item(task, stride, nblk)
+                if is_item:
+                    column_block(src, b, blk * BLOCK, H, W, dst)
+            if ti.static(transpose):  # the first and last rows, where the transposed taps clamp
+                for task in range(num_poses * 2 * stride):
+                    is_item, b, end = item(task, stride, 2)
+                    if is_item:
+                        y = end * (H - 1)
+                        for x in range(W):
+                            for c in range(channels):
+                                put(dst, b, x, y, c, border(src, b, x, y, H, c))
+        elif ti.static(stride > 1):  # the CPU: one task per image row (grain.py)
             for task in range(num_poses * H * stride):
                 is_item, b, y = item(task, stride, H)
                 if is_item:
-                    if ti.static(axis == 1):
-                        slide(src, b, y, W, dst)
-                    else:
-                        for x in range(W):
-                            at(src, b, x, y, H, dst)
+                    slide(src, b, y, W, dst)
         else:
             for b, y, x in ti.ndrange(num_poses, H, W):
                 if ti.static(axis == 1):
@@ -274,7 +295,7 @@ def cs_system_kernel():
                   what: ti.types.ndarray(dtype=f32, ndim=4), rows: ti.types.ndarray(dtype=f32, ndim=4),
                   out: ti.types.ndarray(dtype=ti.f64, ndim=2)):
         horizontal(rgb, qstats, query_index, num_poses, h)
-        cs_terms(h, qstats, query_index, alpha, mask_alpha, num_poses, weights, means, rows)
+        cs_terms(h, qstats, query_index, alpha, mask_alpha, num_poses, rows, (weights, means))
         rows_of_drgb(drgb, num_poses, tmpj)
         cols_of_jbar(tmpj, num_poses, jbar)
         cols_of_weights(weights, num_poses, tmpw)

@@ -114,3 +114,90 @@ def test_query_statistics_are_the_windowed_mean_and_variance(layout, h, w):
     np.testing.assert_allclose(out[1, ..., 1], np.maximum(second - mean * mean, 0.0), rtol=0, atol=4e-6)
     np.testing.assert_array_equal(out[1, ..., 2], q)
     assert np.isnan(out[0]).all()  # the other slot untouched
+
+
+def window_cost_rows(rgb, alpha, query, mask_alpha, luminance):
+    """Float64 twin of the window cost's per-row sums [B, H, 2] (the cs or SSIM mean over channels of each
+    valid pixel, valid pixels) with the clamped window, from renderings rgb [B, H, W, 3] and the query [H, W, 3]."""
+    from hgsloc_plugin.kernels.window import C1, C2
+
+    _, h, w, _ = rgb.shape
+    my, mx = window_matrix(h), window_matrix(w)
+
+    def filt(a):
+        return np.einsum("pq,...qxc->...pxc", my, np.einsum("pq,...yqc->...ypc", mx, a))
+
+    r, q = rgb.astype(np.float64), query.astype(np.float64)
+    m, mq = filt(r), filt(q)
+    s_rr = np.maximum(filt(r * r) - m * m, 0.0)
+    s_qq = np.maximum(filt(q * q) - mq * mq, 0.0)
+    value = (2.0 * (filt(r * q) - m * mq) + C2) / (s_rr + s_qq + C2)
+    if luminance:
+        value *= (2.0 * m * mq + C1) / (m * m + mq * mq + C1)
+    valid = alpha >= mask_alpha
+    per_pixel = np.where(valid, value.mean(-1), 0.0)
+    return np.stack([per_pixel.sum(-1), valid.sum(-1)], -1)
+
+
+@functools.cache
+def window_rows_kernel(layout: str, luminance: bool):
+    hp.init()
+    vertical = window._vertical_cost(luminance)
+    horizontal = window.horizontal
+
+    @ti.kernel
+    def run(rgb: ti.types.ndarray(dtype=ti.f32, ndim=4), alpha: ti.types.ndarray(dtype=ti.f32, ndim=3),
+            qstats: ti.types.ndarray(dtype=ti.f32, ndim=5), query_index: ti.types.ndarray(dtype=ti.i32, ndim=1),
+            mask_alpha: ti.f32, num_poses: ti.i32, hbuf: ti.types.ndarray(dtype=ti.f32, ndim=5),
+            rows: ti.types.ndarray(dtype=ti.f32, ndim=4)):
+        horizontal(rgb, qstats, query_index, num_poses, hbuf)
+        vertical(hbuf, qstats, query_index, alpha, mask_alpha, num_poses, rows, ())
+
+    return run
+
+
+@pytest.mark.parametrize("h, w", [(1, 4), (5, 12), (13, 17), (17, 9)])
+@pytest.mark.parametrize("luminance, mask_alpha", [(False, 0.0), (True, 0.5)])
+def test_window_cost_rows_are_the_windowed_cs_of_each_row(layout, h, w, luminance, mask_alpha):
+    rng = np.random.default_rng(h * 100 + w)
+    rgb = rng.uniform(size=(2, h, w, 3)).astype(np.float32)
+    alpha = rng.uniform(size=(2, h, w)).astype(np.float32)
+    query = rng.uniform(size=(h, w, 3)).astype(np.float32)
+    qstats = np.zeros((1, h, w, 3, NQ), np.float32)
+    query_stats_kernel(layout)(query, 0, np.zeros((h, w, 3, 2), np.float32), qstats)
+    rows = np.full((2, h, 1, 2), np.nan, np.float32)
+    window_rows_kernel(layout, luminance)(rgb, alpha, qstats, np.zeros(2, np.int32), mask_alpha, 2,
+                                          np.zeros((2, h, w, 3, 3), np.float32), rows)
+    ref = window_cost_rows(rgb, alpha, query, mask_alpha, luminance)
+    np.testing.assert_array_equal(rows[:, :, 0, 1], ref[..., 1])
+    np.testing.assert_allclose(rows[:, :, 0, 0], ref[..., 0], rtol=0, atol=2e-4 * w)
+
+
+def test_cs_system_is_the_same_in_both_layouts(monkeypatch):
+    """The cs system's kernel (its cs terms in blocks of rows on the CPU, per row elsewhere; the filters' layouts
+    above) gives the same sums in both layouts, to float32 rounding."""
+    from hgsloc_plugin.kernels.pose_grad import NXI
+
+    b, h, w = 2, 19, 23
+    rng = np.random.default_rng(5)
+    rgb = rng.uniform(size=(b, h, w, 3)).astype(np.float32)
+    alpha = rng.uniform(size=(b, h, w)).astype(np.float32)
+    drgb = rng.normal(size=(b, h, w, 3 * NXI)).astype(np.float32)
+    qstats = np.zeros((1, h, w, 3, NQ), np.float32)
+    query_stats_kernel("rows")(rng.uniform(size=(h, w, 3)).astype(np.float32), 0, np.zeros((h, w, 3, 2), np.float32),
+                               qstats)
+    nw, k = window_grad.NW, window_grad.ROW_SYS + window_grad.NSYS
+    outs = []
+    for layout in ("rows", "pixels"):
+        if layout == "pixels":
+            monkeypatch.setattr(window, "spread", lambda: 1)
+            monkeypatch.setattr(window_grad, "spread", lambda: 1)
+        scratch = [np.zeros(s, np.float32) for s in [(b, h, w, 3, 3), (b, h, w, nw), (b, h, w, 6), (b, h, w, 3 * NXI),
+                                                     (b, h, w, 3 * NXI), (b, h, w, nw), (b, h, w, nw), (b, h, 1, k)]]
+        out = np.zeros((b, k), np.float64)
+        hp.init()
+        window_grad.cs_system_kernel.__wrapped__()(rgb, alpha, drgb, qstats, np.zeros(b, np.int32), 0.3, b, *scratch,
+                                                   out)
+        outs.append(out)
+    np.testing.assert_array_equal(outs[0][:, 1], outs[1][:, 1])  # valid pixels
+    np.testing.assert_allclose(outs[0], outs[1], rtol=2e-5, atol=1e-6 * np.abs(outs[1]).max())

@@ -178,8 +178,10 @@ def test_bad_arguments_raise():
 
 @pytest.mark.parametrize("luminance", [False, True])
 @pytest.mark.parametrize("mask_alpha", [0.0, 0.5])
-def test_window_cost_kernel_matches_reference(luminance, mask_alpha):
-    """The fused windowed SSIM / cs kernel equals the float64 2D-convolution reference on each pose."""
+@pytest.mark.parametrize("blend", ["splat", "pixel"])
+def test_window_cost_kernel_matches_reference(luminance, mask_alpha, blend):
+    """The fused windowed SSIM / cs kernel equals the float64 2D-convolution reference on each pose, with either
+    image blend (the CPU's tile-parallel one, the GPU's per pixel)."""
     from hgsloc_plugin.render import get_renderer
 
     scene = random_scene(n=400, sh_degree=1, seed=11)
@@ -189,7 +191,7 @@ def test_window_cost_kernel_matches_reference(luminance, mask_alpha):
     rgb, alpha, _ = hp.render_full(scene, cam, poses, background=bg)
     noise = np.random.default_rng(0).normal(0, 0.02, rgb[0].shape)
     query = np.clip(rgb[0] * 0.8 + 0.1 + noise, 0, 1).astype(np.float32)  # a gain/offset change and noise
-    r = get_renderer(scene)
+    r = get_renderer(scene, RasterConfig(blend=blend))
     got = r.window_cost(cam, poses, r.upload_window_query(query), bg, mask_alpha, luminance)
     for k in range(4):
         s, n = window_cost(rgb[k], alpha[k], query, mask_alpha, luminance)

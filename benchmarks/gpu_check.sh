@@ -55,7 +55,7 @@ step() {  # step NAME COMMAND...: run COMMAND with the budget's remaining time, 
 cuda_tests() {
   HGSLOC_ARCH=cuda "$PY" -m pytest -q -p no:cacheprovider tests/test_tile_sort.py tests/test_render.py \
       tests/test_pose_grad.py tests/test_working_set.py tests/test_lod.py tests/test_lockstep.py \
-      tests/test_layout.py tests/test_launch.py 2>&1 | tee "$out/tests_cuda.log"
+      tests/test_layout.py tests/test_launch.py tests/test_window.py 2>&1 | tee "$out/tests_cuda.log"
   grep -q " passed" "$out/tests_cuda.log" && ! grep -qE " (failed|error)" "$out/tests_cuda.log"
 }
 

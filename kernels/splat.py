@@ -181,15 +181,6 @@ def _colour_and_depth(packed: ti.template(), aux: ti.template(), b, g):
 
 
 @ti.func
-def _add_colour_and_depth(acc: ti.template(), p, col, depth, alpha, capped, T, dx, dy, ca, cb, cc):
-    """The image blend's pixel terms: accumulators (T [npx], (R, G, B, depth) [npx, 4])."""
-    vis = alpha * T
-    for c in ti.static(range(3)):
-        acc[1][p, c] += vis * col[c]
-    acc[1][p, 3] += vis * depth
-
-
-@ti.func
 def _colour(packed: ti.template(), aux: ti.template(), b, g):
     """The colour-only blend's per-Gaussian terms: colour [3] (no extra)."""
     return colour_of(packed, b, g), 0.0
@@ -197,10 +188,17 @@ def _colour(packed: ti.template(), aux: ti.template(), b, g):
 
 @ti.func
 def _add_colour(acc: ti.template(), p, col, extra, alpha, capped, T, dx, dy, ca, cb, cc):
-    """The colour-only blend's pixel terms: accumulators (T [npx], (R, G, B) [npx, 3])."""
+    """The colour-only blend's pixel terms: accumulators (T [npx], (R, G, B) [npx, >= 3])."""
     vis = alpha * T
     for c in ti.static(range(3)):
         acc[1][p, c] += vis * col[c]
+
+
+@ti.func
+def _add_colour_and_depth(acc: ti.template(), p, col, depth, alpha, capped, T, dx, dy, ca, cb, cc):
+    """The image blend's pixel terms: :func:`_add_colour`'s, and the depth in (R, G, B, depth) [npx, 4]."""
+    _add_colour(acc, p, col, depth, alpha, capped, T, dx, dy, ca, cb, cc)
+    acc[1][p, 3] += alpha * T * depth
 
 
 def _make_splat_tile(config: RasterConfig, depth: bool):

@@ -265,15 +265,14 @@ def _no_pixel_outputs(cs, den, m, mq, valid, b, y, x, c, outs: ti.template()):
     pass
 
 
-def row_sums(value, pixel=None):
+def row_sums(value, pixel=_no_pixel_outputs):
     """The vertical pass from the horizontal pass ``hbuf`` [B, H, W, 3, 3] to per-row sums rows [B, H, 1, >= 2]:
     fields 0, 1 = (sum over the row's valid pixels, alpha >= ``mask_alpha``, of the channels' mean of
-    ``value(cs, m, mq)``, valid pixels), the run-statistics layout that ``blend.reduce_rows`` sums per pose; with
-    ``pixel``, also ``pixel(cs, den, m, mq, valid, b, y, x, c, outs)`` at every pixel and channel (``outs``: the
-    caller's arrays; both ti.funcs). On the CPU one task per ``BLOCK`` rows (:func:`block_moments`), elsewhere one
+    ``value(cs, m, mq)``, valid pixels), the run-statistics layout that ``blend.reduce_rows`` sums per pose; and
+    ``pixel(cs, den, m, mq, valid, b, y, x, c, outs)`` at every pixel and channel (``outs``: the caller's arrays;
+    by default nothing; both ti.funcs). On the CPU one task per ``BLOCK`` rows (:func:`block_moments`), elsewhere one
     per row; each row's sum in the order of its pixels either way. Returns a ti.func ``(hbuf, qstats, query_index,
     alpha, mask_alpha, num_poses, rows, outs)``."""
-    at_pixel = pixel if pixel is not None else _no_pixel_outputs
 
     @ti.func
     def run(hbuf: ti.template(), qstats: ti.template(), query_index: ti.template(), alpha: ti.template(), mask_alpha,
@@ -299,7 +298,7 @@ def row_sums(value, pixel=None):
                                 cs, den, m, mq = cs_of_moments(M[r, 0], M[r, 1], M[r, 2], qstats, qi, y, x, c)
                                 v[r] += value(cs, m, mq)
                                 if y0 + r < H:
-                                    at_pixel(cs, den, m, mq, alpha[b, y, x] >= mask_alpha, b, y, x, c, outs)
+                                    pixel(cs, den, m, mq, alpha[b, y, x] >= mask_alpha, b, y, x, c, outs)
                         for r in ti.static(range(BLOCK)):
                             if y0 + r < H:
                                 if alpha[b, y0 + r, x] >= mask_alpha:
@@ -319,7 +318,7 @@ def row_sums(value, pixel=None):
                         for c in ti.static(range(3)):
                             cs, den, m, mq = contrast_structure(hbuf, qstats, qi, b, y, x, c, H)
                             v += value(cs, m, mq)
-                            at_pixel(cs, den, m, mq, valid, b, y, x, c, outs)
+                            pixel(cs, den, m, mq, valid, b, y, x, c, outs)
                         if valid:
                             tot += v / 3.0
                             cnt += 1.0

@@ -626,6 +626,46 @@ def test_the_last_stage_takes_model_steps_straight_to_their_pass():
     assert fake.calls[:3] == ["pass", "pass", "render"] and fake.calls.count("pass") == 2
 
 
+def test_a_step_that_gains_far_less_than_its_model_line_searches_the_next(monkeypatch):
+    """A kept step whose decrease is under ``MIN_GAIN`` of what its Gauss-Newton model predicted (the curvature
+    understated: the step overshoots the minimum) says the model does not hold: the next trial is line-searched, not
+    sent straight to its pass. With the curvature understated 0.6x the first direct step gains a third of its
+    prediction; at the next pass the model overshoots so far (0.45x) that its step raises the cost: the gate scores
+    it with a render instead of a pass, and lands where the ungated polish does with a pass fewer."""
+    from hgsloc_plugin.refine import polish as polish_mod
+
+    class Understated(_QuadraticCost):
+        def __init__(self, target, factors):
+            super().__init__(target, factors[0])
+            self.factors, self.calls = list(factors), []
+
+        def window_cost(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            self.calls.append("render")
+            return super().window_cost(camera, poses, qstats, background, mask_alpha)
+
+        def pose_gradient(self, camera, poses, qstats, background=None, mask_alpha=0.0):
+            n = sum(c == "pass" for c in self.calls)
+            self.overstate = self.factors[min(n, len(self.factors) - 1)]
+            self.calls.append("pass")
+            return super().pose_gradient(camera, poses, qstats, background, mask_alpha)
+
+    assert 0.33 < polish_mod.MIN_GAIN <= 0.75
+    target = hp.Pose.identity()
+    start = target.perturbed_in_camera(np.radians([1.0, -0.5, 0.3]), [0.03, 0.02, -0.01])
+    cam = hp.Camera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    runs, gate = {}, polish_mod.MIN_GAIN
+    for gain in (gate, 0.0):  # 0: every kept step lets the model hold (the gate off)
+        monkeypatch.setattr(polish_mod, "MIN_GAIN", gain)
+        fake = Understated(target, [0.6, 0.45, 1.0])
+        pose, st = polish(fake, cam, None, start, depth=2.0, iterations=30, allowed=lambda p: True)
+        assert st.cost < st.cost_start and pose.errors_to(target)[0] < 1e-3
+        runs[gain] = (pose, st, fake.calls)
+    (pose, st, calls), (pose0, st0, calls0) = runs[gate], runs[0.0]
+    assert calls[:3] == ["pass", "pass", "render"]  # the gated trial after the low-gain step
+    assert calls0[:3] == ["pass", "pass", "pass"]  # ungated: straight to a pass, which fails
+    assert st.passes == st0.passes - 1 and pose.errors_to(pose0)[0] < 1e-9
+
+
 def assert_same_to_rounding(images, images2, system, system2) -> None:
     """Two derivative passes of the same poses agree to float32 rounding: colour and alpha within 1e-5, the colour
     derivatives within 1e-5 of their largest (the splat blend's alpha recurrence, ``splat.row_factors``, and the

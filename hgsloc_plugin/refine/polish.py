@@ -67,6 +67,10 @@ HANDOFF_PX = 1.0  # ... which hands a kept Gauss-Newton step under this (pixels 
 # the last stage's trials predicted to lower the cost by this many times its ``decrease`` threshold (or more) skip
 # the line search (``Convergence.direct``; how 2, 3 and 5 compare: ``benchmarks/defaults.md``)
 DIRECT_FROM = 3.0
+# ... and only after a kept step that gained at least this fraction of its model's predicted decrease: at 198x148 on
+# snow_sharp every direct trial after a step gaining 0.1-0.57 of it raised the cost (a pass for nothing), every one
+# after 0.69 or more lowered it (``benchmarks/defaults.md``)
+MIN_GAIN = 0.6
 
 
 @dataclass(frozen=True)
@@ -285,6 +289,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         if c2 < cost:
             if direct:  # a longer step would have paid (the slope g.xi of the pose before): line-search the next
                 model_holds = not longer_pays(cost - c2, -float(g @ xi), LONGER_FROM)
+            if model_holds and not cost - c2 >= MIN_GAIN * predicted_decrease(g, H, xi):
+                model_holds = False  # the step gained much less than its model predicted: line-search the next
             negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.cost_rendered = rendered

@@ -17,10 +17,11 @@ Gauss-Newton step under ``HANDOFF_PX`` without its pass and hands over (``Conver
 Direct trials: in the last stage (``Convergence.direct``) a step whose Gauss-Newton model predicts a decrease of at
 least ``DIRECT_FROM`` times the convergence threshold goes straight to its derivative pass, which gives its cost too:
 near the minimum the model's step is kept as it is, and its line-search render would only precede the pass. Only
-while the model holds: after a failed trial, a kept step whose line search needed a longer multiple, or a direct
-one whose decrease says a longer step would have paid (:func:`longer_pays`), the next trials are line-searched until
-one keeps its multiple 1. A step predicted to lower the cost less is still scored first: it usually ends the stage
-without a pass.
+while the model holds: after a failed trial, a kept step whose line search needed a longer multiple, a direct one
+whose decrease says a longer step would have paid (:func:`longer_pays`), or a kept step that gained less than
+``MIN_GAIN`` of the decrease its model predicted (the model overshoots), the next trials are line-searched until one
+keeps its multiple 1 and gains as predicted. A step predicted to lower the cost less is still scored first: it
+usually ends the stage without a pass.
 
 Line search: before a derivative pass, the step's multiples ``LINE_SEARCH`` (1, 2, 4) are scored with the cost alone
 (plain renders, ``Renderer.window_cost``) and the derivative pass goes to the best of them; when none lowers the

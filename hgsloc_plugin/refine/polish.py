@@ -69,7 +69,7 @@ HANDOFF_PX = 1.0  # ... which hands a kept Gauss-Newton step under this (pixels 
 # the line search (``Convergence.direct``; how 2, 3 and 5 compare: ``benchmarks/defaults.md``)
 DIRECT_FROM = 3.0
 # ... and only after a kept step that gained at least this fraction of its model's predicted decrease: at 198x148 on
-# snow_sharp every direct trial after a step gaining 0.1-0.57 of it raised the cost (a pass for nothing), every one
+# snow_sharp every direct trial after a step gaining 0.09-0.57 of it raised the cost (a pass for nothing), every one
 # after 0.69 or more lowered it (``benchmarks/defaults.md``)
 MIN_GAIN = 0.6
 

@@ -16,14 +16,16 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
 - ``working set + coarse LOD, search``: the same, and the coarse (pyramid) levels render a level of detail with
   Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``RefineConfig.coarse_lod_pixels=2``; opt-in).
 - ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
-  refused (``RefineConfig.gradient_first``).
+  refused (``RefineConfig.gradient_first``); ``working set + coarse LOD, gradient first``: the same with the
+  coarse LOD above.
 
 Before the timed queries, each process refines the first query once untimed (kernel compilation or loading
 from Taichi's offline cache, once per process; its time is printed as "warm-up").
 Columns: ms per render (14 poses per call at the default scoring size, 200x150, from the first query's prior;
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
 largest selection of a query, median) and selections per query,
-renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS.
+renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS; then
+where the timed queries' seconds go, by stage and scoring size (``throughput.stage_clock``).
 
 ``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at
 the final scoring size, one pose, median of 15): projection, tile sort, blending, with the Gaussians rendered
@@ -53,11 +55,14 @@ PATHS = {
     "working set, search": dict(working_set=True, gradient_first=False),
     "working set + coarse LOD, search": dict(working_set=True, gradient_first=False, coarse_lod_pixels=2.0),
     "working set, gradient first": dict(working_set=True, gradient_first=True),
+    "working set + coarse LOD, gradient first": dict(working_set=True, gradient_first=True, coarse_lod_pixels=2.0),
 }
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
 
 def child(k: int, path: str, queries: int, noise: str) -> dict:
+    from throughput import stage_clock
+
     import hgsloc_plugin as hp
     from hgsloc_plugin.demo.queries import degrade, query_poses
     from hgsloc_plugin.demo.run import QUERY_CAMERA
@@ -90,8 +95,9 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     refiner.refine(imgs[0], cam, priors[0])  # warm-up: compiles (or loads) every kernel the routes use, once
     warm = time.perf_counter() - t0
     e0, e1, ren, sec, wset, nsel, passes = [], [], [], [], [], [], []
-    for img, gt, prior in zip(imgs, gts, priors):
-        r = refiner.refine(img, cam, prior)
+    with stage_clock() as spent:
+        results = [refiner.refine(img, cam, prior) for img, prior in zip(imgs, priors)]
+    for r, gt, prior in zip(results, gts, priors):
         e0.append(prior.errors_to(gt))
         e1.append(r.pose.errors_to(gt))
         ren.append(r.renders)
@@ -106,7 +112,8 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
             "passes": float(np.median(passes)), "warm_up_s": warm, "s_per_query": float(np.mean(sec)),
             "before": [float(np.median(e0[:, 0])) * 100, float(np.median(e0[:, 1]))],
             "after": [float(np.median(e1[:, 0])) * 100, float(np.median(e1[:, 1]))],
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "stages": {key: v / len(results) for key, v in spent.items()}}
 
 
 def stages(k: int) -> str:
@@ -185,6 +192,7 @@ def main() -> None:
              "s / query | speed-up | before t / R | after t / R | peak RSS (MB) | warm-up (s) |", "|" + "---|" * 13]
     print("\n".join(lines), flush=True)
     t_all = time.time()
+    split = []
     for k in a.k:
         rows = {}
         for path in a.paths:
@@ -203,6 +211,12 @@ def main() -> None:
                     f"{r['warm_up_s']:.1f} |")
             lines.append(line)
             print(line, flush=True)
+            rest = r["s_per_query"] - sum(r["stages"].values())
+            parts = sorted(r["stages"].items(), key=lambda kv: -kv[1]) + [("rest", rest)]
+            split.append(f"| {r['gaussians']:,} | {path} | " + ", ".join(f"{n} {v:.2f}" for n, v in parts) + " |")
+    lines += ["\nWhere a query's seconds go (per query, by stage and scoring size):\n",
+              "| Gaussians | path | stages (s / query) |", "|---|---|---|", *split]
+    print("\n".join(lines[-len(split) - 3:]), flush=True)
     lines.append(f"\nTotal {time.time() - t_all:.0f} s; Taichi backend: {rows[a.paths[0]]['arch']}.")
     print(lines[-1])
     if a.out:

@@ -34,10 +34,10 @@ kernels; on the CPU the Python right after a kernel runs with cold caches, so mo
 whether every returned pose of every round, sequential and batched, equals the first round's sequential one bit
 for bit, and the share of the CPU time the hypervisor took during the sequential and the batched queries
 (``benchmarks/machine.py``: the render-times and the batched speed move with it). A second table splits each
-query's time (render-times, sequential) by stage: the polish per scoring size, the acceptance rule (its one-pixel
-moves), the lattice search (usual and wide levels), and the rest (plan, working set, query upload); on the CPU, where
-a launch runs its kernel, a third by kernel (the seconds in each kernel's launches, named by the ``@ti.kernel``
-function, ``kernels/``), the rest being the host's.
+query's time (render-times, sequential) by stage: the polish and the lattice search (usual and wide levels) per
+scoring size, the acceptance rule (its one-pixel moves), and the rest (plan, working set, query upload); on the
+CPU, where a launch runs its kernel, a third by kernel (the seconds in each kernel's launches, named by the
+``@ti.kernel`` function, ``kernels/``), the rest being the host's.
 """
 
 from __future__ import annotations
@@ -165,8 +165,8 @@ def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles:
 
 @contextlib.contextmanager
 def stage_clock():
-    """Seconds spent per stage while inside: {"polish WxH": s, "rule": s, "search": s} (wraps the route functions
-    the refiner calls; restored on exit)."""
+    """Seconds spent per stage while inside: {"polish WxH": s, "search WxH": s, "rule": s}, by scoring size (wraps
+    the route functions the refiner calls; restored on exit)."""
     from hgsloc_plugin.refine import refiner as refiner_mod
     from hgsloc_plugin.refine import routes
 
@@ -184,7 +184,7 @@ def stage_clock():
     saved = [(routes, "polish"), (routes, "best_first"), (refiner_mod, "judge")]
     originals = [getattr(m, n) for m, n in saved]
     routes.polish = timed(routes.polish, lambda a: f"polish {a[1].width}x{a[1].height}")
-    routes.best_first = timed(routes.best_first, "search")
+    routes.best_first = timed(routes.best_first, lambda a: f"search {a[2].camera.width}x{a[2].camera.height}")
     refiner_mod.judge = timed(refiner_mod.judge, "rule")
     try:
         yield spent

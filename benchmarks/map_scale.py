@@ -220,9 +220,11 @@ def main() -> None:
     lines.append(f"\nTotal {time.time() - t_all:.0f} s; Taichi backend: {rows[a.paths[0]]['arch']}.")
     print(lines[-1])
     if a.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
+        from real_photos import write_keeping_notes
 
-        atomic_write_bytes(Path(a.out), ("\n".join(lines) + "\n").encode())
+        head = ["# Map scale (`benchmarks/map_scale.py`)", "", f"Regenerate: `python benchmarks/map_scale.py --out "
+                f"{a.out}` (`HGSLOC_ARCH=cuda` for the CUDA table).", ""]
+        write_keeping_notes(Path(a.out), head + lines, section="## ")  # its dated sections kept
 
 
 if __name__ == "__main__":

@@ -99,13 +99,15 @@ def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
     return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
 
 
-def write_keeping_notes(path: Path, lines: list[str]) -> None:
-    """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping the ``## Notes`` section the file
-    already has below its tables: a benchmark regenerates its figures, not the discussion written beside them."""
+def write_keeping_notes(path: Path, lines: list[str], section: str = "## Notes") -> None:
+    """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping what the file already has from its
+    first line starting with ``section`` (default: its ``## Notes``; ``"## "``: every level-2 section, for a
+    benchmark whose own lines hold none): a benchmark regenerates its figures, not the discussion beside them."""
     from hgsloc_plugin.fileio import atomic_write_bytes
 
     old = path.read_text() if path.exists() else ""
-    notes = ["", old[old.index("\n## Notes") + 1:].rstrip("\n")] if "\n## Notes" in old else []
+    mark = "\n" + section
+    notes = ["", old[old.index(mark) + 1:].rstrip("\n")] if mark in old else []
     atomic_write_bytes(path, ("\n".join(lines + notes) + "\n").encode())
 
 

@@ -29,13 +29,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from real_photos import DATA, load_dataset, localizer_errors, shaped_prior  # noqa: E402
+from real_photos import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
 from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
 from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.fileio import atomic_write_bytes  # noqa: E402
 from hgsloc_plugin.image import resize_image  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.render import get_renderer  # noqa: E402
@@ -216,8 +215,8 @@ def sweep_rows(scene, cam, gts, imgs, cost, lines) -> None:
 
 def write(out, lines, t_start) -> None:
     text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 2)[2].strip() +
-            f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines) + "\n")
-    atomic_write_bytes(Path(out), text.encode())
+            f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines))
+    write_keeping_notes(Path(out), text.splitlines(), section="## ")  # its discussion sections kept
     print(f"wrote {out}")
 
 

@@ -253,7 +253,7 @@ def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit:
 
 #: ``--layout cuda``: the renderer settings CUDA picks by default ("auto"), forced on any backend, so that the CPU
 #: runs (slowly) the GPU's launch structure: the launch counts and poses of a CUDA run
-CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off"}
+CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off", "tile_test": "ellipse"}
 
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,

@@ -63,6 +63,7 @@ from real_photos import load_dataset, localizer_errors, shaped_prior, worse_coun
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.backend import default_batch_size  # noqa: E402
 from hgsloc_plugin.batch import as_queries  # noqa: E402
+from hgsloc_plugin.kernels.config import CUDA_LAYOUT  # noqa: E402  (--layout cuda)
 from hgsloc_plugin.lockstep import Lockstep, refine_queries  # noqa: E402
 from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.config import PRESETS  # noqa: E402
@@ -249,11 +250,6 @@ def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit:
     pairs = sorted(refine_queries(refiner, as_queries(items), gate=gate), key=lambda qr: qr[0].index)
     sec = (time.perf_counter() - t0) / len(items)
     return [r for _, r in pairs], sec, (gate.requests - before[0], gate.launches - before[1])
-
-
-#: ``--layout cuda``: the renderer settings CUDA picks by default ("auto"), forced on any backend, so that the CPU
-#: runs (slowly) the GPU's launch structure: the launch counts and poses of a CUDA run
-CUDA_LAYOUT = {"sort": "parallel", "blend": "pixel", "grad_masks": "off", "tile_test": "ellipse"}
 
 
 def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int = 6,

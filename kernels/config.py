@@ -89,3 +89,9 @@ class RasterConfig:
     def for_layout(self, cpu_tiles: bool) -> RasterConfig:
         """This config with ``grad_tile_size`` set to :meth:`grad_tile` (what the kernels read)."""
         return replace(self, grad_tile_size=self.grad_tile(cpu_tiles))
+
+
+#: The layout "auto" picks on CUDA, as ``RasterConfig`` fields: forced on any backend it runs the GPU's launch
+#: structure (``benchmarks/throughput.py --layout cuda``, tests). The pickers: ``render.buffers.blend_mode`` and
+#: ``sort_mode``, ``footprint.uses_ellipse_tiles``, ``pose_grad.uses_masks`` (checked in ``tests/test_tile_sort.py``).
+CUDA_LAYOUT = {"blend": "pixel", "sort": "parallel", "grad_masks": "off", "tile_test": "ellipse"}

@@ -16,6 +16,7 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.batch import as_queries
 from hgsloc_plugin.image import resize_image
+from hgsloc_plugin.kernels.config import CUDA_LAYOUT
 from hgsloc_plugin.lockstep import Lockstep, refine_queries
 from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.render import get_renderer
@@ -192,7 +193,7 @@ def test_real_photos_in_the_cuda_layout_match_the_cpu_layout():
     sharp map to the poses the CPU's layout gives one at a time within issue 33's 0.001 % of the depth: the same
     routes (the gradient from 2 % / 1 deg, the search from 12 % / 6 deg) and acceptance. What a GPU adds is its
     compiler's rounding."""
-    cuda_layout = hp.RasterConfig(blend="pixel", sort="parallel", grad_masks="off", tile_test="ellipse")
+    cuda_layout = hp.RasterConfig(**CUDA_LAYOUT)
     scene, cam, queries = _snow("snow_sharp.ply")
     items = _snow_items(cam, queries[:3])
     cpu = hp.HGSLocPlugin(scene).refine_many(items, progress=False, batch_size=1)

@@ -232,6 +232,24 @@ def test_ellipse_footprint_drops_only_tiles_the_gaussian_cannot_reach(sort):
         np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3 * np.abs(a).max())
 
 
+def test_cuda_layout_is_what_auto_picks_on_cuda():
+    """``kernels.config.CUDA_LAYOUT`` (CUDA's layout forced on any backend) names what each "auto" resolves to on
+    CUDA, and resolves there as the default config does."""
+    from hgsloc_plugin.kernels.config import CUDA_LAYOUT
+    from hgsloc_plugin.kernels.footprint import uses_ellipse_tiles
+    from hgsloc_plugin.kernels.pose_grad import uses_masks
+    from hgsloc_plugin.render.buffers import blend_mode, sort_mode
+
+    auto, forced = hp.RasterConfig(), hp.RasterConfig(**CUDA_LAYOUT)
+    for config in (auto, forced):
+        splat = blend_mode(config.blend, "cuda") == "splat"
+        picks = {"blend": blend_mode(config.blend, "cuda"), "sort": sort_mode(config.sort, "cuda"),
+                 "grad_masks": "on" if uses_masks(config, "cuda", splat) else "off",
+                 "tile_test": "ellipse" if uses_ellipse_tiles(config, "cuda") else "box"}
+        assert picks == CUDA_LAYOUT, config
+    assert blend_mode("auto", "cpu") == "splat" and blend_mode("pixel", "cpu") == "pixel"
+
+
 def test_tile_test_per_backend():
     """auto: the ellipse on CUDA, the box on the CPU; a bad setting is refused."""
     from hgsloc_plugin.kernels.footprint import uses_ellipse_tiles

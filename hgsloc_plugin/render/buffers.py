@@ -33,6 +33,14 @@ def read_rows(arr: ti.Ndarray, n: int) -> np.ndarray:
     return out
 
 
+def blend_mode(requested: str, arch: str) -> str:
+    """The image blend a renderer uses (``RasterConfig.blend``) on backend ``arch``: for "auto", "pixel" on CUDA
+    (one thread per pixel) and "splat" on the CPU (one task per tile, each Gaussian visiting its own pixels)."""
+    if requested == "auto":
+        return "pixel" if arch == "cuda" else "splat"
+    return requested
+
+
 def sort_mode(requested: str, arch: str) -> str:
     """The tile sort a renderer uses (``RasterConfig.sort``) on backend ``arch``: for "auto", "parallel" on CUDA
     (one thread per Gaussian and tile, a device radix sort) and "serial" on the CPU (one thread per pose)."""

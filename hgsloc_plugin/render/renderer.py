@@ -26,7 +26,7 @@ from ..kernels.tile_sort import bin_parallel, tile_sort_kernel
 from ..pose import Pose
 from ..scene import GaussianScene
 from . import derivatives
-from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, read_rows, sort_mode
+from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, blend_mode, read_rows, sort_mode
 from .prepare import DeviceGaussians, upload
 
 #: the share of the Gaussians from which a selection (a working set, a union of them) is rendered from the whole map
@@ -48,7 +48,7 @@ class Renderer:
 
     def __init__(self, scene: GaussianScene, config: RasterConfig | None = None):
         config, arch = config or RasterConfig(), current_arch()
-        self.blend_mode = mode = ("pixel" if arch == "cuda" else "splat") if config.blend == "auto" else config.blend
+        self.blend_mode = mode = blend_mode(config.blend, arch)
         self.config = config.for_layout(mode == "splat" and arch != "cuda")  # the derivative pass's tile size
         if scene.num_gaussians == 0:
             raise ValueError("scene has no Gaussians")

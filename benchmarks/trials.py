@@ -1,0 +1,383 @@
+"""Trials: the real 7-Scenes localizer errors as the test distribution, applied to many views of many scenes.
+
+Usage: python benchmarks/trials.py [--per-cell 100] [--scenes room stripes donut lego snow_sharp snow]
+    [--localizers ace glace marepo dfnet hloc] [--jobs 2] [--raw trials.jsonl] [--out benchmarks/trials.md]
+
+Errors: for each localizer, the camera-frame error ``E = T_est T_gt^-1`` of every one of its 17,000 7-Scenes
+poses against the SfM pseudo ground truth (``../shared/data/poses/7scenes``); a trial draws one uniformly (seeded),
+with its translation scaled by the view's median depth over 2 m (7-Scenes' typical depth), and applies it to a
+view's true pose. ACE / GLACE draws carry the inlier count the localizer wrote for that pose, which sets the query's
+trust region and expected error as ``hgsloc refine`` does for their files (``adapters/confidence.py``).
+
+Views (errors in **cm-eq**: centre error x 200 / the view's median depth, so 1 cm-eq is the same image motion on
+every scene):
+- ``room``: random views of the demo room (``hgsloc_plugin.demo``), one per trial;
+- ``stripes``: random views of the room's striped wall (periodic texture: a wrong minimum one stripe over);
+- ``donut``: random views of ``../shared/data/scenes/donut.ply`` (a small SH-0 object), one per trial;
+  the three rendered by the independent PyTorch reference (``tests/reference/render_torch.py``), then degraded as
+  photos (gain, gamma, blur, noise, an occluder);
+- ``lego``: its 15 held-out Blender renders against a 3DGS fitted to other views;
+- ``snow_sharp`` / ``snow``: the 6 real phone photos against the good and the imperfect map.
+
+Per localizer x scene: N, recall at 1cm1deg / 2cm2deg / 5cm5deg / 10cm10deg before -> after, medians, accepted,
+**worse** (the returned pose is further from the truth than the prior in centre or rotation, any amount) and
+**clearly worse** (> 1 cm-eq or > 0.5 deg further), each with its one-sided 95 % upper bound (Clopper-Pearson),
+calibration (share of accepted poses whose error lies within 1 / 2 / 3 sigma, centre and rotation; sigma is the
+root of the covariance trace, so a calibrated 3-D Gaussian puts 61 / 99 / 100 % there), renders and seconds per
+query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit a calibration).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+LOCALIZERS = ("ace", "glace", "marepo", "dfnet", "hloc")
+SCENES = ("room", "stripes", "donut", "lego", "snow_sharp", "snow")
+RECALLS = ((1.0, 1.0), (2.0, 2.0), (5.0, 5.0), (10.0, 10.0))
+CLEARLY_CM, CLEARLY_DEG = 1.0, 0.5
+#: 7-Scenes' typical median depth: a localizer's metric error is scaled by a view's depth over this
+REFERENCE_DEPTH = 2.0
+SEED = 2026
+
+
+# ---------------------------------------------------------------- statistics (no package imports: cheap to test)
+
+def upper_bound(k: int, n: int, level: float = 0.95) -> float:
+    """One-sided Clopper-Pearson upper bound of a rate with ``k`` events in ``n`` trials (1.0 when n = 0)."""
+    if n <= 0:
+        return 1.0
+    if k >= n:
+        return 1.0
+
+    def cdf(p: float) -> float:  # P(X <= k) for X ~ Binomial(n, p)
+        if p <= 0.0:
+            return 1.0
+        if p >= 1.0:
+            return 0.0
+        lp, lq = math.log(p), math.log1p(-p)
+        return sum(math.exp(math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1) + i * lp
+                            + (n - i) * lq) for i in range(k + 1))
+
+    lo, hi = k / n, 1.0
+    for _ in range(100):  # cdf falls with p: find p where it is 1 - level
+        mid = 0.5 * (lo + hi)
+        if cdf(mid) > 1.0 - level:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+def summarise(rows: list[dict]) -> dict:
+    """The table's figures for a list of trial records (``run_trial``'s dicts)."""
+    n = len(rows)
+    e0 = np.array([[r["t0"], r["r0"]] for r in rows], np.float64).reshape(-1, 2)
+    e1 = np.array([[r["t1"], r["r1"]] for r in rows], np.float64).reshape(-1, 2)
+    acc = np.array([r["accepted"] for r in rows], bool)
+    moved = np.array([r["moved"] for r in rows], bool)
+    worse = moved & ((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9))
+    clearly = (e1[:, 0] > e0[:, 0] + CLEARLY_CM) | (e1[:, 1] > e0[:, 1] + CLEARLY_DEG)
+    out = {"n": n, "accepted": int(acc.sum()), "worse": int(worse.sum()), "clearly": int(clearly.sum()),
+           "worse_ub": upper_bound(int(worse.sum()), n), "clearly_ub": upper_bound(int(clearly.sum()), n)}
+    out["recall0"] = [float(np.mean((e0[:, 0] <= t) & (e0[:, 1] <= r))) if n else math.nan for t, r in RECALLS]
+    out["recall1"] = [float(np.mean((e1[:, 0] <= t) & (e1[:, 1] <= r))) if n else math.nan for t, r in RECALLS]
+    out["median0"] = [float(np.median(e0[:, i])) if n else math.nan for i in range(2)]
+    out["median1"] = [float(np.median(e1[:, i])) if n else math.nan for i in range(2)]
+    sig = np.array([[r["sigma_t"], r["sigma_r"]] for r in rows], np.float64).reshape(-1, 2)
+    ok = acc & np.all(np.isfinite(sig), axis=1) & np.all(sig > 0, axis=1)
+    out["calibrated_n"] = int(ok.sum())
+    out["within"] = [[float(np.mean(e1[ok, i] <= m * sig[ok, i])) if ok.any() else math.nan for m in (1, 2, 3)]
+                     for i in range(2)]
+    out["renders"] = float(np.mean([r["renders"] for r in rows])) if n else math.nan
+    out["seconds"] = float(np.mean([r["seconds"] for r in rows])) if n else math.nan
+    return out
+
+
+def table(rows: list[dict], scenes, localizers) -> list[str]:
+    """Markdown rows: one per localizer x scene present in ``rows``, then every localizer pooled per scene and the
+    whole pool."""
+    head = ["| localizer | scene | N | recall 1/2/5/10 before | after | median before | after | accepted | "
+            "worse (95 % ub) | clearly worse (95 % ub) | within 1/2/3 sigma t | R | renders | s / q |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def fmt(loc, scene, sel):
+        if not sel:
+            return None
+        s = summarise(sel)
+        pct = lambda xs: "/".join(f"{100 * x:.0f}" for x in xs)  # noqa: E731
+        within = ["-" if s["calibrated_n"] == 0 else pct(s["within"][i]) for i in range(2)]
+        return (f"| {loc} | {scene} | {s['n']} | {pct(s['recall0'])} | {pct(s['recall1'])} | "
+                f"{s['median0'][0]:.2f} / {s['median0'][1]:.2f} | {s['median1'][0]:.2f} / {s['median1'][1]:.2f} | "
+                f"{s['accepted']} | {s['worse']} ({100 * s['worse_ub']:.2f} %) | "
+                f"{s['clearly']} ({100 * s['clearly_ub']:.2f} %) | {within[0]} | {within[1]} | "
+                f"{s['renders']:.0f} | {s['seconds']:.2f} |")
+
+    out = list(head)
+    for loc in localizers:
+        for scene in scenes:
+            line = fmt(loc, scene, [r for r in rows if r["localizer"] == loc and r["scene"] == scene])
+            if line:
+                out.append(line)
+    for scene in scenes:
+        line = fmt("all", scene, [r for r in rows if r["scene"] == scene])
+        if line:
+            out.append(line)
+    line = fmt("**all**", "**all**", rows)
+    if line:
+        out.append(line)
+    return out
+
+
+# ---------------------------------------------------------------- trials
+
+@dataclass
+class Trial:
+    """One trial: a view of a scene and one localizer error applied to it."""
+
+    index: int
+    scene: str
+    view: int
+    localizer: str
+    error: int  # index into the localizer's 17,000 errors
+
+
+def plan_trials(scenes, localizers, per_cell: int, n_errors: dict[str, int], n_views: dict[str, int | None],
+                seed: int = SEED) -> list[Trial]:
+    """The trials, in a fixed order: per scene and localizer ``per_cell``, each drawing an error uniformly; views
+    cycle through a data set's fixed views, or are one new random view per trial (``n_views`` None)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for scene in scenes:
+        k = 0
+        for loc in localizers:
+            for _ in range(per_cell):
+                nv = n_views[scene]
+                out.append(Trial(len(out), scene, k if nv is None else k % nv, loc, int(rng.integers(n_errors[loc]))))
+                k += 1
+    return out
+
+
+def localizer_errors(method: str):
+    """(errors [M] as camera-frame ``Pose``s, inlier counts [M] or None) of a localizer on all 7-Scenes test
+    frames, in the pGT files' order."""
+    from adapters import read_poses
+    from adapters.confidence import record_inliers
+
+    errs, counts = [], []
+    for scene_dir in sorted((DATA / "poses" / "7scenes").glob("*")):
+        est, gt = read_poses(scene_dir / f"{method}.txt"), read_poses(scene_dir / "pgt_sfm_test.txt")
+        by_key = {n.replace("/", "-"): n for n in est}
+        for n, g in gt.items():
+            k = by_key.get(n.replace("/", "-"))
+            if k is not None and est[k] is not None and g is not None:
+                errs.append(est[k] @ g.inv())
+                counts.append(record_inliers(est.dialect, est.record(k).tokens))
+    return errs, (counts if any(c is not None for c in counts) else None)
+
+
+class Views:
+    """A scene's map, camera, background and views (true pose, query image [H, W, 3], median depth), made lazily:
+    synthetic views are rendered by the reference renderer when first asked for."""
+
+    def __init__(self, name: str):
+        import hgsloc_plugin as hp
+        from hgsloc_plugin.demo.scene import make_room_scene
+
+        self.name, self.fixed, self.bg = name, None, (0.0, 0.0, 0.0)
+        if name in ("room", "stripes"):
+            self.scene, self.cam = make_room_scene(0), hp.Camera.from_fov(320, 240, 60.0)
+        elif name == "donut":
+            self.scene, self.cam = hp.GaussianScene.from_ply(DATA / "scenes" / "donut.ply"), hp.Camera.from_fov(
+                320, 240, 50.0)
+        else:
+            self.scene, self.cam, self.fixed, self.bg = _dataset(name)
+        self._cache: dict[int, tuple] = {}
+
+    def __len__(self) -> int | None:
+        return None if self.fixed is None else len(self.fixed)
+
+    def view(self, k: int):
+        if self.fixed is not None:
+            return self.fixed[k]
+        if k not in self._cache:
+            self._cache[k] = self._synthetic(k)
+        return self._cache[k]
+
+    def _synthetic(self, k: int):
+        import hgsloc_plugin as hp
+        from hgsloc_plugin.demo.queries import degrade
+        from hgsloc_plugin.refine.plan import median_depth
+        from tests.reference.render_torch import render_reference
+
+        rng = np.random.default_rng([SEED, SCENES.index(self.name), k])
+        gt = _random_view(self.name, rng)
+        rgb, alpha = render_reference(self.scene, self.cam, gt, self.bg)
+        img = degrade(np.asarray(rgb, np.float32), rng, gain=(0.85, 1.15), gamma=(0.9, 1.1), noise_std=0.015)
+        del alpha, hp
+        return gt, img, median_depth(self.scene, self.cam, gt)
+
+
+def _random_view(name: str, rng: np.random.Generator):
+    """A random true pose of a synthetic scene."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.demo.scene import HALF
+
+    if name == "donut":
+        az, el, r = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.38)
+        eye = r * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        return hp.Pose.look_at(eye, [0.0, 0.0, 0.03] + rng.normal(scale=0.01, size=3))
+    eye = np.array([rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(1.1, 1.7)])
+    up = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), 1.0])
+    if name == "stripes":  # a point on the striped wall (y = +HALF), away from the corners
+        target = np.array([rng.uniform(-0.6, 0.6) * HALF, HALF, rng.uniform(0.6, 1.9)])
+    else:
+        yaw = rng.uniform(0, 2 * np.pi)
+        target = eye + np.array([np.cos(yaw), np.sin(yaw), rng.uniform(-0.35, 0.1)])
+    return hp.Pose.look_at(eye, target, up)
+
+
+def _dataset(name: str):
+    """(scene, camera, [(true pose, image, median depth)], background) of a ../shared/data set."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.refine.plan import median_depth
+
+    folder, ply = {"snow": ("snow", "snow.ply"), "snow_sharp": ("snow", "snow_sharp.ply"),
+                   "lego": ("lego", "lego.ply")}[name]
+    d = DATA / folder
+    cj = json.loads((d / "camera.json").read_text())
+    cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
+    scene = hp.GaussianScene.from_ply(d / ply)
+    white = name == "lego"
+    bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
+    views = []
+    for line in (d / "gt.txt").read_text().splitlines():
+        t = line.split()
+        gt = hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]])
+        img = load_image(d / "queries" / t[0], background=bg)
+        views.append((gt, img, median_depth(scene, cam, gt)))
+    return scene, cam, views, bg
+
+
+def available(scene: str) -> Path | None:
+    """The file a scene needs when it is missing, else None."""
+    need = {"donut": DATA / "scenes" / "donut.ply", "lego": DATA / "lego" / "lego.ply",
+            "snow": DATA / "snow" / "snow.ply", "snow_sharp": DATA / "snow" / "snow_sharp.ply"}.get(scene)
+    return need if need is not None and not need.exists() else None
+
+
+def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool = True) -> None:
+    """Refine each trial, appending one JSON line per trial to ``out_path``."""
+    import hgsloc_plugin as hp
+    from adapters.confidence import inlier_trust
+
+    hp.init()
+    views: dict[str, Views] = {}
+    refiners: dict[str, hp.HGSLocPlugin] = {}
+    errors: dict[str, tuple] = {}
+    config = hp.RefineConfig.preset(preset)
+    t_start = time.time()
+    with open(out_path, "a") as f:
+        for i, tr in enumerate(trials):
+            if tr.scene not in views:
+                views[tr.scene] = Views(tr.scene)
+                refiners[tr.scene] = hp.HGSLocPlugin(views[tr.scene].scene,
+                                                     config.replace(background=views[tr.scene].bg))
+            if tr.localizer not in errors:
+                errors[tr.localizer] = localizer_errors(tr.localizer)
+            v = views[tr.scene]
+            gt, img, depth = v.view(tr.view)
+            errs, counts = errors[tr.localizer]
+            err = errs[tr.error]
+            prior = hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt
+            settings = {}
+            inliers = None if counts is None else counts[tr.error]
+            if inliers is not None:
+                settings = inlier_trust(inliers).as_dict()
+            r = refiners[tr.scene].refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
+            cm = 100.0 * REFERENCE_DEPTH / depth  # cm-eq per scene unit
+            t0, r0 = prior.errors_to(gt)
+            t1, r1 = r.pose.errors_to(gt)
+            rec = {"index": tr.index, "scene": tr.scene, "view": tr.view, "localizer": tr.localizer,
+                   "error": tr.error, "inliers": inliers, "t0": t0 * cm, "r0": r0, "t1": t1 * cm, "r1": r1,
+                   "ts": r.search_pose.errors_to(gt)[0] * cm, "rs": r.search_pose.errors_to(gt)[1],
+                   "accepted": bool(r.accepted), "moved": bool(r.accepted), "fused": bool(r.fused),
+                   "route": r.route, "rejected": r.rejected, "confidence": float(r.confidence),
+                   "sigma_t": float(r.sigma_t) * cm, "sigma_r": float(r.sigma_r_deg),
+                   "renders": int(r.renders), "seconds": float(r.seconds)}
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            if progress and (i + 1) % 10 == 0:
+                print(f"  {i + 1} / {len(trials)} trials, {time.time() - t_start:.0f} s", file=sys.stderr, flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--per-cell", type=int, default=100, help="trials per localizer x scene")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    ap.add_argument("--localizers", nargs="+", default=list(LOCALIZERS), choices=LOCALIZERS)
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--jobs", type=int, default=2, help="processes, each on its share of the cores")
+    ap.add_argument("--raw", default=None, help="keep one JSON line per trial here (default: a temporary file)")
+    ap.add_argument("--out", default=None, help="write the table as Markdown here")
+    ap.add_argument("--shard", default=None, help=argparse.SUPPRESS)  # "k/n": run every n-th trial from k
+    args = ap.parse_args()
+    sys.path.insert(0, str(ROOT))
+    if not (DATA / "poses" / "7scenes").exists():
+        sys.exit(f"trials: {DATA / 'poses' / '7scenes'} not found (the localizer errors)")
+    scenes = [s for s in args.scenes if available(s) is None]
+    for s in set(args.scenes) - set(scenes):
+        print(f"skipping {s}: {available(s)} not found", file=sys.stderr)
+    sizes = {"snow": 6, "snow_sharp": 6, "lego": None}
+    n_views = {s: None for s in scenes}
+    for s in scenes:
+        if s in sizes:
+            n_views[s] = len(Views(s).fixed)
+    n_errors = {loc: 17000 for loc in args.localizers}
+    trials = plan_trials(scenes, args.localizers, args.per_cell, n_errors, n_views)
+    raw = Path(args.raw) if args.raw else Path(os.environ.get("TMPDIR", "/tmp")) / f"trials-{os.getpid()}.jsonl"
+    if args.shard:
+        k, n = (int(x) for x in args.shard.split("/"))
+        run_trials(trials[k::n], args.preset, raw, progress=k == 0)
+        return
+    t0 = time.time()
+    parts = [raw.with_suffix(f".part{k}") for k in range(args.jobs)]
+    for p in parts:
+        p.unlink(missing_ok=True)
+    env = dict(os.environ)  # each process its share of the cores, unless HGSLOC_CPU_THREADS says otherwise
+    env.setdefault("HGSLOC_CPU_THREADS", str(max(1, (os.cpu_count() or 1) // args.jobs)))
+    cmd = [sys.executable, __file__, "--per-cell", str(args.per_cell), "--preset", args.preset, "--scenes", *scenes,
+           "--localizers", *args.localizers]
+    procs = [subprocess.Popen(cmd + ["--raw", str(p), "--shard", f"{k}/{args.jobs}"], env=env)
+             for k, p in enumerate(parts)]
+    codes = [p.wait() for p in procs]
+    if any(codes):
+        sys.exit(f"trials: a worker failed (exit codes {codes})")
+    rows = sorted((json.loads(line) for p in parts for line in p.read_text().splitlines()), key=lambda r: r["index"])
+    raw.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    for p in parts:
+        p.unlink()
+    seconds = time.time() - t0
+    lines = [f"{len(rows)} trials, preset {args.preset}, {args.jobs} processes, {seconds:.0f} s wall; raw: {raw}", ""]
+    lines += table(rows, scenes, args.localizers)
+    print("\n".join(lines))
+    if args.out:
+        from hgsloc_plugin.fileio import atomic_write_bytes
+
+        atomic_write_bytes(Path(args.out), ("\n".join(lines) + "\n").encode())
+
+
+if __name__ == "__main__":
+    main()

@@ -82,3 +82,27 @@ def record_inliers(dialect: str, tokens: list[str]) -> float | None:
         return float(tokens[col])
     except ValueError:
         return None
+
+
+#: hloc's 7-Scenes errors against the SfM pGT (``../shared/data/poses/7scenes/*/hloc.txt``, all 17,000 poses; the
+#: test ``tests/test_prior_region.py`` recomputes them): median and 99th percentile, camera centre (cm) and degrees
+HLOC_MEDIAN_CM, HLOC_MEDIAN_DEG = 1.10, 0.18
+HLOC_Q99_CM, HLOC_Q99_DEG = 13.53, 2.45
+#: below this many PnP inliers an hloc pose is taken as doubtful: the published 7-Scenes poses carry no counts, so
+#: no table joins counts to errors; such a pose gets the widest ACE bin (a RANSAC pose from few inliers)
+HLOC_FEW_INLIERS = 30
+
+
+def hloc_trust(num_inliers: float) -> QueryPrior:
+    """The settings of an hloc pose with ``num_inliers`` PnP inliers (hloc's ``<results>_logs.pkl``): at least
+    ``HLOC_FEW_INLIERS``, hloc's own 7-Scenes median error as the expected error and ``REGION_MARGIN`` times its
+    99th percentile as the trust region; fewer, the widest ACE inlier bin's; none set when the count is unusable.
+    Lengths are fractions of the query's median depth, as :func:`inlier_trust`'s."""
+    if not (math.isfinite(num_inliers) and num_inliers >= 0):
+        return QueryPrior()
+    if num_inliers < HLOC_FEW_INLIERS:
+        return inlier_trust(0.0)
+    scale = 1.0 / 100.0 / REFERENCE_DEPTH
+    return QueryPrior(max_shift_depth=REGION_MARGIN * HLOC_Q99_CM * scale,
+                      max_rotation_deg=REGION_MARGIN * HLOC_Q99_DEG, prior_error_depth=HLOC_MEDIAN_CM * scale,
+                      prior_error_deg=HLOC_MEDIAN_DEG)

@@ -64,8 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--prior-rotation-error", help="the priors' typical rotation error, e.g. 1deg (see --prior-error)")
     r.add_argument("--no-inlier-region", action="store_true",
                    help="do not set each query's trust region and expected error from the inlier count of "
-                        "ACE/GLACE pose files (default: a confident pose gets a tight region, and the refined "
-                        "pose is fused with it by the count's expected error)")
+                        "ACE/GLACE pose files or of hloc's <results>_logs.pkl beside an hloc results file "
+                        "(default: a confident pose gets a tight region, and the refined pose is fused with it "
+                        "by the count's expected error)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=count_arg, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

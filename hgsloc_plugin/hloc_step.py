@@ -9,10 +9,12 @@ Run it after ``localize_sfm.main(...)`` and before ``evaluate(...)`` in a pipeli
 or from the shell: ``python -m hgsloc_plugin.hloc_step --scene S.ply --queries Q.txt --results R.txt
 --image_dir DIR --output OUT.txt``.
 
-hloc's results file carries no per-pose confidence; when the localizer's typical (median) error is known, give it
-(``RefineConfig(prior_error=..., prior_error_deg=...)``, or ``--prior_error 2cm --prior_rotation_error 1deg``):
-each refined pose is then fused with its prior (``refine/trust.py``), which keeps a precise prior where the map's
-cost minimum drifts off the truth.
+hloc's results file carries no per-pose confidence, but ``localize_sfm`` writes each query's PnP inlier count to a
+log beside it (``<results>_logs.pkl``): the step reads it and sets each query's trust region and expected error from
+the count (``adapters/confidence.hloc_trust``), so each refined pose is fused with its prior (``refine/trust.py``),
+which keeps a precise prior where the map's cost minimum drifts off the truth. Without the log (one warning), or with
+``--no_inlier_region``, give the localizer's typical (median) error when known (``RefineConfig(prior_error=...,
+prior_error_deg=...)``, or ``--prior_error 2cm --prior_rotation_error 1deg``).
 """
 
 from __future__ import annotations
@@ -30,17 +32,19 @@ logger = logging.getLogger("hgsloc_plugin")
 
 def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Path, config=None,
          limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False,
-         batch_size: int | None = None) -> Path:
+         batch_size: int | None = None, inlier_region: bool = True) -> Path:
     """Refine hloc's ``results`` with the 3DGS ``scene``; intrinsics from ``queries`` (with intrinsics).
 
     Returns the path of the refined results (HLoc dialect), with a JSON report beside it. ``results`` is read as
     hloc writes it (``name qw qx qy qz tx ty tz`` per line): any other line is an error naming it.
     ``batch_size``: queries refined together (``batch.run_batch``; None: the backend's default).
+    ``inlier_region``: read hloc's PnP inlier counts from ``<results>_logs.pkl`` (one warning when missing).
     """
     logger.info("Refining %s with %s", results, scene)
     refine_pose_file(scene, Path(results), Path(image_dir),
                      from_query_list(queries, allow_distortion=allow_distortion), Path(output),
-                     config=config, limit=limit, gt_variant=gt_variant, dialect="hloc", batch_size=batch_size)
+                     config=config, limit=limit, gt_variant=gt_variant, dialect="hloc", batch_size=batch_size,
+                     inlier_region=inlier_region, expect_hloc_log=inlier_region)
     return Path(output)
 
 
@@ -60,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--allow_distortion", action="store_true")
     ap.add_argument("--batch_size", type=positive_count_arg, help="queries refined together (default: 4 on the "
                                                                   "CPU, 32 on CUDA)")
+    ap.add_argument("--no_inlier_region", action="store_true",
+                    help="do not read hloc's PnP inlier counts from <results>_logs.pkl (each query's trust region "
+                         "and expected error)")
     ap.add_argument("--prior_error", help="the localizer's typical (median) camera-centre error, e.g. 2cm: each "
                                           "refined pose is fused with its prior (default: unknown)")
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
@@ -77,7 +84,8 @@ def cli(argv=None) -> int:
         overrides = prior_error_overrides(a.prior_error, a.prior_rotation_error,
                                           ("--prior_error", "--prior_rotation_error"))
         main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
-             a.limit, allow_distortion=a.allow_distortion, batch_size=a.batch_size)
+             a.limit, allow_distortion=a.allow_distortion, batch_size=a.batch_size,
+             inlier_region=not a.no_inlier_region)
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"hloc step: error: {exc}", file=sys.stderr)
         return 2

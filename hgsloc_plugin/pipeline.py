@@ -13,7 +13,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
-from .adapters.confidence import inlier_trust, record_inliers
+from .adapters.confidence import hloc_trust, inlier_trust, record_inliers
 from .adapters.dialects import read_poses, write_poses
 from .adapters.names import resolve_image
 from .adapters.posefile import PoseFile
@@ -144,15 +144,41 @@ def _queries(run: _Run, names: list[str], images: Path, intrinsics: Callable[[st
     return out
 
 
-def _region_of(pf: PoseFile, cfg: RefineConfig) -> Callable[[str], QueryPrior]:
-    """name -> the query's settings from its record's inlier count (``adapters/confidence.inlier_trust``; none
-    without one), less those the refiner's config fixes (``QueryPrior.deferring_to``)."""
+def _region_of(pf: PoseFile, cfg: RefineConfig, hloc_counts: dict[str, float] | None = None
+               ) -> Callable[[str], QueryPrior]:
+    """name -> the query's settings from its inlier count: the record's own (ACE, GLACE:
+    ``adapters/confidence.inlier_trust``) or hloc's log's (``hloc_counts``: ``confidence.hloc_trust``); none
+    without one; less those the refiner's config fixes (``QueryPrior.deferring_to``)."""
 
     def region_of(name: str) -> QueryPrior:
+        if hloc_counts is not None:
+            n = hloc_counts.get(name)
+            return QueryPrior() if n is None else hloc_trust(n).deferring_to(cfg)
         inliers = record_inliers(pf.dialect, pf.record(name).tokens)
         return QueryPrior() if inliers is None else inlier_trust(inliers).deferring_to(cfg)
 
     return region_of
+
+
+def _hloc_counts(pf: PoseFile, expect_log: bool) -> dict[str, float] | None:
+    """hloc's PnP inlier counts for an hloc-dialect file from the log beside it (``adapters.hloc.read_inlier_log``);
+    None, with one warning, when it is unreadable, or missing where ``expect_log`` (the hloc step) says it should be
+    there."""
+    from .adapters.hloc import inlier_log_path, read_inlier_log
+
+    if pf.dialect != "hloc" or pf.path is None:
+        return None
+    try:
+        counts = read_inlier_log(pf.path)
+    except ValueError as exc:
+        logger.warning("%s; refining without hloc's inlier counts", exc)
+        return None
+    if counts is None:
+        if expect_log:
+            logger.warning("%s not found: refining without hloc's inlier counts", inlier_log_path(pf.path))
+        return None
+    logger.info("read hloc's PnP inlier counts of %d queries from %s", len(counts), inlier_log_path(pf.path))
+    return counts
 
 
 def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Path | PoseFile, images: Path,
@@ -161,7 +187,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
                      gt_variant: str | None = None, figures: Path | None = None, progress: bool = True,
                      save_every: int = 10, settings: dict | None = None, workers: int = 0,
                      ray_address: str | None = None, inlier_region: bool = True,
-                     batch_size: int | None = None) -> dict:
+                     batch_size: int | None = None, expect_hloc_log: bool = False) -> dict:
     """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
 
     Args:
@@ -175,8 +201,10 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
             (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
         batch_size: queries advanced together (``batch.run_batch``; None: the backend's default). Same poses.
-        inlier_region: in files that hold each pose's RANSAC inlier count (ACE, GLACE), set each query's trust
-            region and expected prior error from it (``adapters/confidence.py``); values set in ``config`` win.
+        inlier_region: where each pose's inlier count is known, set each query's trust region and expected prior
+            error from it (``adapters/confidence.py``): the RANSAC count in ACE and GLACE files, the PnP count in
+            hloc's log beside an hloc results file (``<results>_logs.pkl``); values set in ``config`` win.
+        expect_hloc_log: warn (once) when an hloc results file has no log beside it (the hloc step).
 
     Returns:
         The report dict (also written as JSON).
@@ -204,7 +232,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
                        output, r["retried"])
     run = _Run(pf, output, report, refined)
     queries = _queries(run, [n for n in names if n not in done], images, intrinsics,
-                       _region_of(pf, refiner.config) if inlier_region else lambda _: QueryPrior())
+                       _region_of(pf, refiner.config, _hloc_counts(pf, expect_hloc_log))
+                       if inlier_region else lambda _: QueryPrior())
     count = 0
 
     def on_result(q: Query, res: RefineResult) -> None:

@@ -7,7 +7,9 @@ Errors: for each localizer, the camera-frame error ``E = T_est T_gt^-1`` of ever
 poses against the SfM pseudo ground truth (``../shared/data/poses/7scenes``); a trial draws one uniformly (seeded),
 with its translation scaled by the view's median depth over 2 m (7-Scenes' typical depth), and applies it to a
 view's true pose. ACE / GLACE draws carry the inlier count the localizer wrote for that pose, which sets the query's
-trust region and expected error as ``hgsloc refine`` does for their files (``adapters/confidence.py``).
+trust region and expected error as ``hgsloc refine`` does for their files (``adapters/confidence.py``). HLoc draws
+get the settings of an hloc pose whose log gives at least ``HLOC_FEW_INLIERS`` PnP inliers (``hloc_trust``): the
+published 7-Scenes hloc poses carry no counts, and nearly all of them are localized from many matches.
 
 Views (errors in **cm-eq**: centre error x 200 / the view's median depth, so 1 cm-eq is the same image motion on
 every scene):
@@ -281,7 +283,7 @@ def available(scene: str) -> Path | None:
 def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool = True) -> None:
     """Refine each trial, appending one JSON line per trial to ``out_path``."""
     import hgsloc_plugin as hp
-    from adapters.confidence import inlier_trust
+    from adapters.confidence import HLOC_FEW_INLIERS, hloc_trust, inlier_trust
 
     hp.init()
     views: dict[str, Views] = {}
@@ -306,6 +308,8 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
             inliers = None if counts is None else counts[tr.error]
             if inliers is not None:
                 settings = inlier_trust(inliers).as_dict()
+            elif tr.localizer == "hloc":
+                settings = hloc_trust(HLOC_FEW_INLIERS).as_dict()
             r = refiners[tr.scene].refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
             cm = 100.0 * REFERENCE_DEPTH / depth  # cm-eq per scene unit
             t0, r0 = prior.errors_to(gt)
@@ -316,7 +320,10 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                    "accepted": bool(r.accepted), "moved": bool(r.accepted), "fused": bool(r.fused),
                    "route": r.route, "rejected": r.rejected, "confidence": float(r.confidence),
                    "sigma_t": float(r.sigma_t) * cm, "sigma_r": float(r.sigma_r_deg),
-                   "renders": int(r.renders), "seconds": float(r.seconds)}
+                   "renders": int(r.renders), "seconds": float(r.seconds),
+                   "cost_initial": float(r.cost_initial), "cost_final": float(r.cost_final),
+                   "gradient_rejected": r.gradient_rejected,
+                   "assessment": None if r.assessment is None else r.assessment.to_dict()}
             f.write(json.dumps(rec) + "\n")
             f.flush()
             if progress and (i + 1) % 10 == 0:

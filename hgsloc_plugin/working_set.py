@@ -104,6 +104,9 @@ class WorkingSet:
     def pose_gradient(self, camera: Camera, poses: list[Pose], *args, **kwargs):
         return self.covering(poses).pose_gradient(camera, poses, *args, **kwargs)
 
+    def pose_gradient_bands(self, camera: Camera, pose: Pose, *args, **kwargs):
+        return self.covering([pose]).pose_gradient_bands(camera, pose, *args, **kwargs)
+
     def render_full(self, camera: Camera, poses: list[Pose], *args, **kwargs):
         return self.covering(poses).render_full(camera, poses, *args, **kwargs)
 

@@ -78,3 +78,28 @@ def small_sh3():
     from hgsloc_plugin import GaussianScene
 
     return GaussianScene.from_ply(shared_path("scenes", "small_sh3.ply"))
+
+
+class FakeScorer:
+    """A scorer of known costs for the rule's tests: ``cost(poses) -> [B]`` is called per batch (each batch kept in
+    ``batches``), and ``band_gradients`` returns ``jtj`` [6, 6] with 12 band gradients whose cluster-robust meat is
+    ``scale * jtj``, so the pose's covariance (``uncertainty.pose_uncertainty``) is ``scale * jtj^-1`` plus the
+    map's floor."""
+
+    def __init__(self, cost, jtj, scale=1.0):
+        self.cost, self.jtj, self.scale, self.batches = cost, np.asarray(jtj, np.float64), scale, []
+
+    def __call__(self, poses):
+        self.batches.append(list(poses))
+        return np.asarray(self.cost(list(poses)), np.float64)
+
+    def remember(self, pose, cost, metric):
+        pass
+
+    def band_gradients(self, pose, bands):
+        w, v = np.linalg.eigh(0.5 * (self.jtj + self.jtj.T)) if np.all(np.isfinite(self.jtj)) else (None, None)
+        if w is None:
+            return self.jtj, np.zeros((12, 6))
+        root = v * np.sqrt(np.clip(w, 0.0, None))  # root @ root.T == jtj
+        g = 0.5 * np.sqrt(self.scale) * np.vstack([root.T, root.T])  # [12, 6]: g.T g = scale (12 - 6) / 12 jtj
+        return self.jtj, g

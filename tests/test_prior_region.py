@@ -28,7 +28,7 @@ from hgsloc_plugin.pipeline import refine_pose_file
 from hgsloc_plugin.refine.plan import median_depth
 from hgsloc_plugin.viz import save_png
 
-from .conftest import room_query
+from .conftest import FakeScorer, room_query
 
 POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "poses" / "7scenes"
 
@@ -110,7 +110,7 @@ def _reference_fusion(pose, cov, prior, err_t, err_deg):
     """The Gaussian product written out independently: the prior's offset from ``pose`` by the Rodrigues inverse
     (not the quaternion route), and the posterior mean as a whitened least-squares problem: minimise
     ``|L^-1 x|^2 + sum_i (x_i - xp_i)^2 / s_i^2`` with ``L L^T = cov`` and s the prior's per-axis spread."""
-    from hgsloc_plugin.refine.trust import PRIOR_SPREAD
+    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD
 
     dR = prior.R @ pose.R.T
     ang = math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1))
@@ -138,7 +138,7 @@ def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
     pose is fused with the prior, as an independent Gaussian product computes it; a prior far more precise than
     the refinement holds the pose near it, a vague one leaves the refinement as it is; a prior so precise that the
     fusion is no better in cost is kept ("prior more precise"); one part given pulls only that part."""
-    from hgsloc_plugin.refine.trust import PRIOR_SPREAD
+    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD
 
     scene, cam, gt, img, prior = room
     free = hp.HGSLocPlugin(scene).refine(img, cam, prior)
@@ -235,7 +235,8 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
 
     from hgsloc_plugin.refine.polish import PolishStats
     from hgsloc_plugin.refine.routes import Candidate
-    from hgsloc_plugin.refine.trust import PRIOR_MORE_PRECISE, PRIOR_SPREAD, fuse_with_prior, judge
+    from hgsloc_plugin.refine.trust import PRIOR_MORE_PRECISE, judge
+    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD, fuse_with_prior
 
     pose = hp.Pose.identity()
     prior = pose.perturbed_in_camera([0.0, 0.02, 0.0], [0.0, 0.0, 0.05])
@@ -247,14 +248,12 @@ def test_fusion_in_closed_form_and_an_unbounded_refinement_keeps_the_prior():
     assert _close(fused, pose.perturbed_in_camera(expect[:3], expect[3:]), 1e-12)
     np.testing.assert_allclose(np.diag(post), a * s2 / (a + s2), rtol=1e-9)
     np.testing.assert_allclose(post - np.diag(np.diag(post)), 0.0, atol=1e-15)
-    plan = SimpleNamespace(coarse_pose=prior, prior_error=err_t, prior_error_deg=err_deg)
+    plan = SimpleNamespace(coarse_pose=prior, prior_error=err_t, prior_error_deg=err_deg, depth=1.0)
     batches = []
 
-    def scorer(poses):  # the coarse pose costs 1, anything else 0.5
-        batches.append(poses)
-        return np.array([1.0 if p is prior else 0.5 for p in poses])
-
-    def judged(jtj):
+    def judged(jtj):  # the coarse pose costs 1, anything else 0.5
+        scorer = FakeScorer(lambda poses: [1.0 if p is prior else 0.5 for p in poses], jtj)
+        scorer.batches = batches
         stats = PolishStats(8, 8, 1.0, 0.5, 1, 1, 0, 0.1, "converged", jtj)
         cand = Candidate("gradient", pose, math.nan, math.nan, prior, polish=[stats])
         return judge(cand, plan, scorer, None, rule="cost", lattice=False, structural=True, pivot=True), cand

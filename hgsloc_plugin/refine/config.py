@@ -33,7 +33,7 @@ class RefineConfig:
         max_shift / max_rotation_deg: the trust region around the coarse pose; None: ``trust_steps`` coarsest
             steps. A query's ``QueryPrior`` overrides them.
         prior_error / prior_error_deg: the coarse poses' expected (median) error; None: unknown. Given, an
-            accepted pose is fused with its prior (``trust.fuse_with_prior``) and the prior is kept when the
+            accepted pose is fused with its prior (``uncertainty.fuse_with_prior``) and the prior is kept when the
             fusion's cost is not lower ("prior more precise").
         acceptance: "trust" (the rule of ``refine/trust.py``) or "cost" (any lower cost, the paper's rule).
         working_set / working_set_min / working_set_pixels: render from the Gaussians seen near the poses scored

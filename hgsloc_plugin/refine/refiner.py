@@ -16,6 +16,7 @@ from ..camera import Camera
 from ..costs import METRICS
 from ..image import check_size, load_image
 from ..kernels import RasterConfig
+from ..kernels.window import RADIUS as WINDOW_RADIUS
 from ..pose import Pose
 from ..prior import QueryPrior
 from ..render import RendererLike, get_renderer
@@ -93,6 +94,10 @@ class Refiner:
             tried.append(self._judged(ctx, gradient_route(ctx)))
             if not tried[-1][1].ends_refinement():
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
+            elif tried[-1][1].accepted and _beyond_reach(plan, tried[-1][0]):
+                logger.debug("query %s: the gradient route travelled beyond a window's reach; the search checks it",
+                             name)
+                tried = _lower_cost_last([tried[-1], self._judged(ctx, search_route(ctx))])
         if not tried or not tried[-1][1].ends_refinement():
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
         if (cfg.wide_step_pixels and cfg.search and cfg.polishes and cfg.neighbourhood == "lattice" and not cfg.levels
@@ -142,6 +147,24 @@ class Refiner:
             logger.warning("query %s failed: %s", name, exc)
             return RefineResult.failed(coarse_pose, f"{type(exc).__name__}: {exc}", name,
                                        time.perf_counter() - t0)
+
+
+def _beyond_reach(plan: Plan, cand: Candidate) -> bool:
+    """Whether the gradient route moved its pose further from the prior than the cs cost's window reaches at the
+    route's coarsest size (``kernels.window.RADIUS`` pixels there): beyond that the descent followed structure
+    no window saw whole, where a periodic texture or the rotation / translation ambiguity can hold it in a wrong
+    minimum, so the search is run from the prior as a second hypothesis (``_lower_cost_last``)."""
+    coarse_px = plan.pixels_apart(plan.coarse_pose, cand.pose) * plan.cam_coarse.fx / plan.cam_final.fx
+    return coarse_px > WINDOW_RADIUS
+
+
+def _lower_cost_last(tried: list[tuple[Candidate, Verdict]]) -> list[tuple[Candidate, Verdict]]:
+    """Two judged hypotheses, the one to return last: the accepted one of lower cost at the judging size (both
+    were scored there, by the same scorer), else the accepted one, else the first."""
+    (a, va), (b, vb) = tried
+    if vb.accepted and (not va.accepted or b.cost < a.cost):
+        return [(a, va), (b, vb)]
+    return [(b, vb), (a, va)]
 
 
 def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:

@@ -23,9 +23,14 @@ class RefineResult:
         cost_initial / cost_final: the cost (lower is better) of the coarse and the returned pose at the size
             where the acceptance rule judged (the polish's when it runs, else the final scoring size).
         accepted: the refined pose passed the acceptance rule (``refine/trust.py``) and is returned.
-        confidence: in [0, 1], 0 when not accepted; nan with ``acceptance="cost"`` (nothing measured).
-        sigma_t / sigma_r_deg / covariance: the returned pose's estimated standard deviations and the [6, 6]
-            covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``); nan / None when not measured.
+        confidence: in [0, 1], 0 when not accepted; for a polished pose, the probability under its own covariance
+            that it lies within 1 % of the median depth and 1 degree of the truth (``uncertainty.within_tolerance``);
+            nan with ``acceptance="cost"`` (nothing measured).
+        sigma_t / sigma_r_deg / covariance: the returned pose's estimated standard deviations (3-D: the root of
+            each covariance block's trace, so an honest one holds the error within 1 sigma about 61 % of the
+            time) and the [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``), cluster-robust
+            over bands of image rows plus the map's floor (``uncertainty.pose_uncertainty``); nan / None when not
+            measured.
         fused: the returned pose is the refined one fused with the prior of known error.
         rejected: why the refined pose was not returned ("no improvement", "insignificant", "weak alignment",
             "flat valley", "trust-region edge", "level inconsistency", "prior more precise"); None when accepted.
@@ -37,8 +42,10 @@ class RefineResult:
             levels: per-level details; history: best cost after each expansion; seconds: wall time.
         working_set / working_set_selections: Gaussians rendered (the largest selection) and selections made.
         route: "gradient" (the polish alone from the coarse pose), "search" (lattice search + polish) or "wide
-            search" (``RefineConfig.wide_step_pixels``, after a refused search); gradient_rejected: why the
-            gradient route's pose was refused before the search ran.
+            search" (``RefineConfig.wide_step_pixels``, after a refused search): the route of the returned
+            candidate (a gradient pose that travelled beyond a window's reach is checked against the search's,
+            the lower cost returned); gradient_rejected: why the gradient route's pose was refused before the
+            search ran.
         polish: the Levenberg-Marquardt stages run, every route's (``PolishStats``).
         error: set when the query failed (then ``pose`` is the coarse pose).
     """

@@ -6,16 +6,16 @@ of one pixel of image motion around it. The candidate is returned only when it p
 "no improvement" (its cost is not below the coarse pose's), "insignificant" (the drop is under
 ``MIN_SIGNIFICANCE`` kappa), "weak alignment" (structural costs: kappa under ``MIN_ALIGNMENT`` of the cost),
 "flat valley" (some move rises less than ``MIN_SHARPNESS`` kappa), "trust-region edge" (beyond ``EDGE_FRACTION``
-of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps).
+of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps),
+and for a polished pose without a prior of known error "within uncertainty" (the prior lies less than
+``MIN_PRIOR_DISTANCE`` of the pose's own standard deviations from it: not clearly better than the prior).
 A polished candidate first renders 6 of the 12 moves (``model_moves``): its last polish stage's Gauss-Newton model
 ranks them, and the rule renders the pair it predicts to rise least (the flattest axis: the minimum) and the four
 at the middle of the ranking (kappa: their median). When the rendered rises do not follow the model
 (``model_agrees``: a rise at or below zero, or ratios to the prediction spread more than ``MODEL_SPREAD``), the
 other 6 are rendered too and the rule reads all 12.
 
-The uncertainty of a polished pose is ``UNCERTAINTY_SCALE^2 * cost * JtJ^-1`` in ``xi = (w, v)``
-(``Pose.perturbed_in_camera``); with a prior of known median error the returned pose is the posterior mean of the
-two (:func:`fuse_with_prior`), the prior isotropic with ``PRIOR_SPREAD`` times its median error per axis.
+A polished pose's uncertainty, its confidence and its fusion with a prior of known error are ``uncertainty.py``'s.
 Where the thresholds and factors come from: ``benchmarks/trust.md``.
 """
 
@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..pose import Pose, rotation_angle_deg
+from .uncertainty import BANDS, fuse_with_prior, pose_uncertainty, prior_distance, sigmas, within_tolerance
 
 if TYPE_CHECKING:
     from ..camera import Camera
@@ -40,81 +41,24 @@ if TYPE_CHECKING:
 #: ``Verdict.rejected`` when the fusion with a prior of known error is no better than the prior (its cost is not
 #: lower) or the refined pose's uncertainty is unbounded
 PRIOR_MORE_PRECISE = "prior more precise"
+#: ``Verdict.rejected`` when the prior lies within the refined pose's own uncertainty (``MIN_PRIOR_DISTANCE``): the
+#: refinement is not clearly better than the prior, so the prior is kept
+WITHIN_UNCERTAINTY = "within uncertainty"
 TRUST_REGION_EDGE = "trust-region edge"
 
 logger = logging.getLogger("hgsloc_plugin")
 
 MIN_SIGNIFICANCE = 1.0
-#: per-axis standard deviation of a prior, in units of its expected (median) error
-PRIOR_SPREAD = 1.3
 MIN_SHARPNESS = 0.02
 MIN_ALIGNMENT = 0.011
 EDGE_FRACTION = 0.9
 MAX_LEVEL_SHIFT = 6.0
-#: sigma of a polished pose per unit of sqrt(cost * JtJ^-1), calibrated on real photos (``benchmarks/defaults.md``)
-UNCERTAINTY_SCALE = 0.1
+#: a polished pose is returned only when the prior lies at least this many of its standard deviations from it
+#: (Mahalanobis distance in the 6 pose axes, :func:`prior_distance`); a prior of known error is fused instead
+MIN_PRIOR_DISTANCE = 3.0
 #: the rendered rises follow the polish's model when their ratios to its predictions spread at most this much
 #: (1.1-1.9 at accepted snow candidates, 2.45 at the least regular refused one: ``benchmarks/trust.md``)
 MODEL_SPREAD = 2.0
-#: the least cs cost the uncertainty is scaled by: a float32 rendering of the map at its own pose matches to
-#: about 1e-7 of the cost, either side of 0
-COST_FLOOR = 1e-9
-
-
-def sigmas(cov: np.ndarray) -> tuple[float, float]:
-    """(sigma of the camera centre, sigma of the rotation in degrees) of a covariance [6, 6] of ``xi = (w, v)``:
-    the root of the trace of each block (the centre moves by ``-R^T v``, a rotation, so its trace is ``v``'s)."""
-    return (math.sqrt(max(float(np.trace(cov[3:, 3:])), 0.0)),
-            math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0))))
-
-
-def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float | None,
-                    prior_error_deg: float | None) -> tuple[Pose, np.ndarray]:
-    """Posterior mean of a refined ``pose`` and the coarse ``prior``.
-
-    Args:
-        pose: the refined pose; cov: [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at it.
-        prior: the coarse pose; prior_error / prior_error_deg: its expected (median) error, camera centre in scene
-            units and rotation in degrees; None: that part unknown (no pull in it).
-
-    Returns:
-        (fused pose, its covariance [6, 6]). In these coordinates the prior sits at ``xi_p = (log(R_p R^T),
-        t_p - R_p R^T t)``, whose ``v`` is the camera-frame shift of the centre, so an isotropic prior on the
-        centre and on the rotation is diagonal: ``xi = (P + C^-1)^-1 P xi_p`` with ``P`` the prior's information.
-    """
-    xp = pose.offset_in_camera(prior)
-    info = np.zeros(6)
-    if prior_error_deg is not None:
-        info[:3] = (PRIOR_SPREAD * math.radians(prior_error_deg)) ** -2
-    if prior_error is not None:
-        info[3:] = (PRIOR_SPREAD * prior_error) ** -2
-    post = np.linalg.inv(np.diag(info) + np.linalg.inv(cov))
-    post = 0.5 * (post + post.T)
-    xi = post @ (info * xp)
-    return pose.perturbed_in_camera(xi[:3], xi[3:]), post
-
-
-def pose_uncertainty(jtj: np.ndarray, cost: float) -> tuple[np.ndarray, float, float]:
-    """Covariance and standard deviations of a polished pose.
-
-    Args:
-        jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
-            pose; cost: the cs cost there (at least ``COST_FLOOR``: a perfect match's cost rounds to about 0,
-            either side).
-
-    Returns:
-        (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
-        the sigmas are the root of the trace of the blocks (the centre moves by ``-R^T v``, a rotation, so its
-        trace is ``v``'s). Infinite where ``jtj`` is singular or not finite.
-    """
-    H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
-    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or not math.isfinite(cost):
-        return np.full((6, 6), math.inf), math.inf, math.inf
-    ev = np.linalg.eigvalsh(H)
-    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
-        return np.full((6, 6), math.inf), math.inf, math.inf
-    cov = UNCERTAINTY_SCALE ** 2 * max(cost, COST_FLOOR) * np.linalg.inv(H)
-    return (cov, *sigmas(cov))
 
 
 @dataclass
@@ -130,8 +74,10 @@ class Assessment:
         alignment: kappa / best cost (nan when not checked; inf at a best cost of zero or below, a perfect match
             up to rounding, with a positive kappa).
         confidence: summary in [0, 1]: min(1, significance / 4) * min(1, sharpness / 0.1) * (1 - travel^4);
-            0 when rejected.
+            0 when rejected (an accepted polished pose's verdict replaces it by :func:`within_tolerance`).
         rejected: None when accepted, else the reason ("insignificant", "flat valley", ...).
+        prior_distance: the prior's Mahalanobis distance from a polished pose under its uncertainty
+            (:func:`prior_distance`; nan when not measured).
     """
 
     significance: float
@@ -142,6 +88,7 @@ class Assessment:
     alignment: float
     confidence: float
     rejected: str | None
+    prior_distance: float = math.nan
 
     def to_dict(self) -> dict:
         return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in vars(self).items()}
@@ -228,8 +175,9 @@ class Verdict:
 
     def ends_refinement(self) -> bool:
         """Whether no (wider) search should follow this verdict: the candidate was accepted, the prior is more
-        precise than the fusion near it, or the coarse pose sits in a sharp, aligned minimum."""
-        return (self.accepted or self.rejected == PRIOR_MORE_PRECISE
+        precise than the fusion near it or lies within the refinement's uncertainty, or the coarse pose sits in a
+        sharp, aligned minimum."""
+        return (self.accepted or self.rejected in (PRIOR_MORE_PRECISE, WITHIN_UNCERTAINTY)
                 or (self.assessment is not None and settled(self.assessment)))
 
 
@@ -249,7 +197,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     moves = _moves(cand.pose, plan, cam, pivot) if trust else []
     model = model_moves(cand, moves, cam)
     first = moves if model is None else [moves[i] for i in model[0]]
-    uncertainty = pose_uncertainty(cand.polish[-1].jtj, cand.polish[-1].cost) if cand.polish else None
+    uncertainty = pose_uncertainty(*scorer.band_gradients(cand.pose, BANDS), plan.depth) if cand.polish else None
     fuses = uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None)
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):
@@ -272,6 +220,10 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
                 rises = scorer(moves) - cand.cost
         assessment = _assess(cand, plan, rises, structural, middle)
         rejected, confidence = assessment.rejected, assessment.confidence
+        if uncertainty is not None:
+            assessment.prior_distance = prior_distance(cand.pose, uncertainty[0], coarse)
+            if rejected is None and not fuses and assessment.prior_distance < MIN_PRIOR_DISTANCE:
+                rejected = WITHIN_UNCERTAINTY
     elif not cand.cost < cand.cost_initial:
         rejected = "no improvement"
     pose, cost, fused = cand.pose, cand.cost, False
@@ -290,6 +242,8 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     out = Verdict(pose, cost, None, assessment, confidence if assessment is not None else math.nan, fused)
     if uncertainty is not None:
         out.covariance, out.sigma_t, out.sigma_r_deg = uncertainty
+        if assessment is not None:
+            out.confidence = within_tolerance(out.sigma_t, out.sigma_r_deg, plan.depth)
     return out
 
 

@@ -12,7 +12,7 @@ import taichi as ti
 
 from ..camera import Camera
 from ..costs import cost_from_window
-from ..kernels import window_grad
+from ..kernels import window, window_grad
 from ..kernels.launch import launcher
 from ..kernels.pose_grad import NXI, derivative_images_kernel
 from ..pose import Pose
@@ -90,3 +90,30 @@ def pose_gradient(r, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.
         grads.append(sys[:, window_grad.NH:] * scale[:, None])
         hessians.append(hess * scale[:, None, None])
     return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)
+
+
+def pose_gradient_bands(r, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+                        bands: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose`` and its gradient split by image rows into ``bands``
+    horizontal bands of (nearly) equal height [bands, 6] (float64; the bands sum to the whole gradient), from one
+    derivative pass against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] (slot 0); what the pose's
+    cluster-robust covariance needs (``refine/uncertainty.py``)."""
+    if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
+        raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs (Q, {camera.height}, "
+                         f"{camera.width}, 3, {window.NQ})")
+    iu = np.triu_indices(NXI)
+    (cams, part, qi), = r._query_parts(camera, [pose], None, 1)
+    g = derivative_images(r, cams, part, background)
+    if g.window is None:
+        g.window = WindowGradBuffers.allocate(*g.alpha.shape)
+    w = g.window
+    out = np.empty((1, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
+    launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), 1, w.h,
+                                             w.wts, w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
+    sums, sys = out[0, :window_grad.ROW_SYS], out[0, window_grad.ROW_SYS:]
+    scale = 2.0 / (3.0 * max(float(sums[1]), 1.0))
+    hess = np.zeros((NXI, NXI))
+    hess[iu] = sys[:window_grad.NH]
+    hess = (hess + np.triu(hess, 1).T) * scale
+    rows = w.rows.to_numpy()[0, :camera.height, 0, window_grad.ROW_SYS + window_grad.NH:].astype(np.float64)
+    return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale

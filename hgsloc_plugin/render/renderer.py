@@ -341,12 +341,9 @@ class Renderer:
 
     def cost_stats(self, camera: Camera | Sequence[Camera], poses: list[Pose], target: ti.Ndarray,
                    background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0) -> np.ndarray:
-        """Photometric statistics of each pose's rendering against ``target``: [B, Stat.SIZE] float64
-        (``kernels.layout.Stat``: n_valid, SAD, SSD, per-channel sums).
-
-        Args:
-            target: the comparison image from :meth:`upload_image`, at the camera's size.
-        """
+        """Photometric statistics of each pose's rendering against ``target`` (the comparison image from
+        :meth:`upload_image`, at the camera's size): [B, Stat.SIZE] float64 (``kernels.layout.Stat``: n_valid,
+        SAD, SSD, per-channel sums)."""
         size = size_camera(camera)
         if size is not None and tuple(target.shape) != (size.height, size.width, 3):
             raise ValueError(f"comparison image is {tuple(target.shape)}, camera needs "
@@ -390,6 +387,9 @@ class Renderer:
         :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
         _check_query_size(qstats, camera)
         return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
+
+    #: the cs Hessian [6, 6] at one pose and its gradient per horizontal band of rows [bands, 6] (``derivatives``)
+    pose_gradient_bands = derivatives.pose_gradient_bands
 
 
 def _check_query_size(qstats, camera: Camera | Sequence[Camera]) -> None:

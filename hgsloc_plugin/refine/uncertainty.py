@@ -1,0 +1,133 @@
+"""The uncertainty of a polished pose, the confidence it gives, and its fusion with a prior of known error.
+
+All in ``xi = (w, v)``, the camera-frame perturbation of ``Pose.perturbed_in_camera``: rotation first (radians),
+then the translation's shift (scene units). The covariance is a cluster-robust sandwich over bands of image rows
+plus the map's floor (:func:`pose_uncertainty`); the confidence is the probability under it that the pose lies
+within 1 % of the depth and 1 degree of the truth (:func:`within_tolerance`); a prior of known median error is
+fused by the posterior mean (:func:`fuse_with_prior`). Where the factors come from: ``benchmarks/trials.md``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..pose import Pose
+
+#: per-axis standard deviation of a prior, in units of its expected (median) error
+PRIOR_SPREAD = 1.3
+#: horizontal bands of image rows whose gradients the pose's covariance is made of (``pose_uncertainty``)
+BANDS = 12
+#: the map's floor in the covariance: camera centre as a fraction of the median depth, and degrees (3-D sigmas)
+FLOOR_DEPTH = 0.003
+FLOOR_DEG = 0.1
+
+
+def sigmas(cov: np.ndarray) -> tuple[float, float]:
+    """(sigma of the camera centre, sigma of the rotation in degrees) of a covariance [6, 6] of ``xi = (w, v)``:
+    the root of the trace of each block (the centre moves by ``-R^T v``, a rotation, so its trace is ``v``'s)."""
+    return (math.sqrt(max(float(np.trace(cov[3:, 3:])), 0.0)),
+            math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0))))
+
+
+def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float | None,
+                    prior_error_deg: float | None) -> tuple[Pose, np.ndarray]:
+    """Posterior mean of a refined ``pose`` and the coarse ``prior``.
+
+    Args:
+        pose: the refined pose; cov: [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at it.
+        prior: the coarse pose; prior_error / prior_error_deg: its expected (median) error, camera centre in scene
+            units and rotation in degrees; None: that part unknown (no pull in it).
+
+    Returns:
+        (fused pose, its covariance [6, 6]). In these coordinates the prior sits at ``xi_p = (log(R_p R^T),
+        t_p - R_p R^T t)``, whose ``v`` is the camera-frame shift of the centre, so an isotropic prior on the
+        centre and on the rotation is diagonal: ``xi = (P + C^-1)^-1 P xi_p`` with ``P`` the prior's information.
+    """
+    xp = pose.offset_in_camera(prior)
+    info = np.zeros(6)
+    if prior_error_deg is not None:
+        info[:3] = (PRIOR_SPREAD * math.radians(prior_error_deg)) ** -2
+    if prior_error is not None:
+        info[3:] = (PRIOR_SPREAD * prior_error) ** -2
+    post = np.linalg.inv(np.diag(info) + np.linalg.inv(cov))
+    post = 0.5 * (post + post.T)
+    xi = post @ (info * xp)
+    return pose.perturbed_in_camera(xi[:3], xi[3:]), post
+
+
+#: the tolerance the confidence of a polished pose is the probability of: camera centre within this fraction of the
+#: median depth (1 %: 2 cm at 7-Scenes' 2 m) and rotation within ``CONFIDENT_DEG`` degrees
+CONFIDENT_DEPTH = 0.01
+CONFIDENT_DEG = 1.0
+
+
+def _chi3_cdf(x: float) -> float:
+    """P(chi-square with 3 degrees of freedom <= x)."""
+    if not x > 0:
+        return 0.0
+    if math.isinf(x):
+        return 1.0
+    return math.erf(math.sqrt(x / 2.0)) - math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
+
+
+def within_tolerance(sigma_t: float, sigma_r_deg: float, depth: float) -> float:
+    """The probability, under a pose's own uncertainty (3-D sigmas: roots of the covariance blocks' traces, taken
+    isotropic), that its centre lies within ``CONFIDENT_DEPTH`` of the depth and its rotation within
+    ``CONFIDENT_DEG`` of the truth; 0 when a sigma is not finite."""
+    if not (math.isfinite(sigma_t) and math.isfinite(sigma_r_deg)):
+        return 0.0
+    p_t = 1.0 if sigma_t <= 0 else _chi3_cdf(3.0 * (CONFIDENT_DEPTH * depth / sigma_t) ** 2)
+    p_r = 1.0 if sigma_r_deg <= 0 else _chi3_cdf(3.0 * (CONFIDENT_DEG / sigma_r_deg) ** 2)
+    return p_t * p_r
+
+
+def pose_uncertainty(jtj: np.ndarray, band_grads: np.ndarray, depth: float) -> tuple[np.ndarray, float, float]:
+    """Covariance and standard deviations of a polished pose, cluster-robust over bands of image rows.
+
+    The pose minimises a sum of per-band costs; how far each band's gradient pulls at the minimum is what the
+    residuals the map cannot explain (its own errors, lighting, occluders, a wrong minimum) do to the pose, in
+    whatever units the image has: the sandwich ``H^-1 (K / (K - 6) sum_c g_c g_c^T) H^-1`` over the ``K`` bands
+    (``BANDS``), plus the map's floor (``FLOOR_DEPTH`` of the depth and ``FLOOR_DEG``, isotropic) that no band
+    sees.
+
+    Args:
+        jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
+            pose; band_grads: [K, 6] the cost's gradient per band at the same pose (``Scorer.band_gradients``);
+            depth: the query's median depth (scene units).
+
+    Returns:
+        (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
+        the sigmas are the root of the trace of the blocks (the centre moves by ``-R^T v``, a rotation, so its
+        trace is ``v``'s). Infinite where ``jtj`` is singular or not finite.
+    """
+    H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
+    G = np.asarray(band_grads, np.float64)
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or G.ndim != 2 or not np.all(np.isfinite(G)):
+        return np.full((6, 6), math.inf), math.inf, math.inf
+    ev = np.linalg.eigvalsh(H)
+    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
+        return np.full((6, 6), math.inf), math.inf, math.inf
+    Hi = np.linalg.inv(H)
+    if len(G) <= 6:
+        return np.full((6, 6), math.inf), math.inf, math.inf
+    meat = (G.T @ G) * (len(G) / (len(G) - 6.0))  # the pose absorbs 6 of the bands' degrees of freedom
+    cov = Hi @ meat @ Hi
+    floor = [math.radians(FLOOR_DEG) ** 2 / 3.0] * 3 + [(FLOOR_DEPTH * depth) ** 2 / 3.0] * 3
+    cov = 0.5 * (cov + cov.T) + np.diag(floor)
+    return (cov, *sigmas(cov))
+
+
+def prior_distance(pose: Pose, cov: np.ndarray, prior: Pose) -> float:
+    """Mahalanobis distance of ``prior`` from ``pose`` under ``pose``'s covariance ``cov`` [6, 6] of ``xi = (w, v)``
+    (``Pose.perturbed_in_camera``): how many of its own standard deviations the refinement moved the pose; inf
+    where ``cov`` is not finite or singular (nothing to compare with: the rule's other tests decide)."""
+    cov = np.asarray(cov, np.float64)
+    if not np.all(np.isfinite(cov)):
+        return math.inf
+    xp = np.asarray(pose.offset_in_camera(prior), np.float64)
+    try:
+        return float(math.sqrt(max(float(xp @ np.linalg.solve(cov, xp)), 0.0)))
+    except np.linalg.LinAlgError:
+        return math.inf

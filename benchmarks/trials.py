@@ -52,6 +52,8 @@ CLEARLY_CM, CLEARLY_DEG = 1.0, 0.5
 #: 7-Scenes' typical median depth: a localizer's metric error is scaled by a view's depth over this
 REFERENCE_DEPTH = 2.0
 SEED = 2026
+#: random views are numbered per localizer from its index times this (a cell has fewer trials)
+VIEWS_PER_CELL = 100_000
 
 
 # ---------------------------------------------------------------- statistics (no package imports: cheap to test)
@@ -158,16 +160,17 @@ class Trial:
 def plan_trials(scenes, localizers, per_cell: int, n_errors: dict[str, int], n_views: dict[str, int | None],
                 seed: int = SEED) -> list[Trial]:
     """The trials, in a fixed order: per scene and localizer ``per_cell``, each drawing an error uniformly; views
-    cycle through a data set's fixed views, or are one new random view per trial (``n_views`` None)."""
-    rng = np.random.default_rng(seed)
+    cycle through a data set's fixed views, or are one new random view per trial (``n_views`` None). Each cell
+    draws from its own seeded stream, so a run's cells are the first trials of a run with a larger ``per_cell``
+    (a quick run compares with a full one trial by trial) and do not depend on which other cells run."""
     out = []
     for scene in scenes:
-        k = 0
         for loc in localizers:
-            for _ in range(per_cell):
-                nv = n_views[scene]
-                out.append(Trial(len(out), scene, k if nv is None else k % nv, loc, int(rng.integers(n_errors[loc]))))
-                k += 1
+            rng = np.random.default_rng([seed, SCENES.index(scene), LOCALIZERS.index(loc)])
+            nv = n_views[scene]
+            for i in range(per_cell):
+                view = LOCALIZERS.index(loc) * VIEWS_PER_CELL + i if nv is None else i % nv
+                out.append(Trial(len(out), scene, view, loc, int(rng.integers(n_errors[loc]))))
     return out
 
 

@@ -2,6 +2,8 @@
 
 Usage: python benchmarks/trials.py [--per-cell 100] [--scenes room stripes donut lego snow_sharp snow]
     [--localizers ace glace marepo dfnet hloc] [--jobs 2] [--raw trials.jsonl] [--out benchmarks/trials.md]
+    [--compare other.jsonl]; python benchmarks/trials.py --from-raw trials.jsonl [--compare other.jsonl] tabulates
+    a kept run (``--compare``: trial by trial against another run's raw file, on the trials both hold).
 
 Errors: for each localizer, the camera-frame error ``E = T_est T_gt^-1`` of every one of its 17,000 7-Scenes
 poses against the SfM pseudo ground truth (``../shared/data/poses/7scenes``); a trial draws one uniformly (seeded),
@@ -25,8 +27,9 @@ Per localizer x scene: N, recall at 1cm1deg / 2cm2deg / 5cm5deg / 10cm10deg befo
 **worse** (the returned pose is further from the truth than the prior in centre or rotation, any amount) and
 **clearly worse** (> 1 cm-eq or > 0.5 deg further), each with its one-sided 95 % upper bound (Clopper-Pearson),
 calibration (share of accepted poses whose error lies within 1 / 2 / 3 sigma, centre and rotation; sigma is the
-root of the covariance trace, so a calibrated 3-D Gaussian puts 61 / 99 / 100 % there), renders and seconds per
-query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit a calibration).
+root of the covariance trace, so a calibrated 3-D Gaussian puts 61 / 99 / 100 % there), the confidence's AUC
+(the probability that an accepted right answer, within 2 cm-eq and 1 deg, has a higher confidence than an accepted
+wrong one), renders and seconds per query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit a calibration).
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ LOCALIZERS = ("ace", "glace", "marepo", "dfnet", "hloc")
 SCENES = ("room", "stripes", "donut", "lego", "snow_sharp", "snow")
 RECALLS = ((1.0, 1.0), (2.0, 2.0), (5.0, 5.0), (10.0, 10.0))
 CLEARLY_CM, CLEARLY_DEG = 1.0, 0.5
+#: a right answer, for the confidence's AUC: what the confidence is the probability of (1 % of the depth, 1 deg)
+RIGHT_CM, RIGHT_DEG = 2.0, 1.0
 #: 7-Scenes' typical median depth: a localizer's metric error is scaled by a view's depth over this
 REFERENCE_DEPTH = 2.0
 SEED = 2026
@@ -84,6 +89,15 @@ def upper_bound(k: int, n: int, level: float = 0.95) -> float:
     return hi
 
 
+def auc(pos, neg) -> float:
+    """The probability that a draw from ``pos`` scores above one from ``neg`` (ties count half): the area under
+    the ROC curve of a score separating them; nan when either is empty."""
+    pos, neg = np.asarray(pos, np.float64), np.asarray(neg, np.float64)
+    if not (pos.size and neg.size):
+        return math.nan
+    return float(np.mean(pos[:, None] > neg[None, :]) + 0.5 * np.mean(pos[:, None] == neg[None, :]))
+
+
 def summarise(rows: list[dict]) -> dict:
     """The table's figures for a list of trial records (``run_trial``'s dicts)."""
     n = len(rows)
@@ -104,6 +118,9 @@ def summarise(rows: list[dict]) -> dict:
     out["calibrated_n"] = int(ok.sum())
     out["within"] = [[float(np.mean(e1[ok, i] <= m * sig[ok, i])) if ok.any() else math.nan for m in (1, 2, 3)]
                      for i in range(2)]
+    conf = np.array([r["confidence"] for r in rows], np.float64)
+    right = (e1[:, 0] <= RIGHT_CM) & (e1[:, 1] <= RIGHT_DEG)
+    out["auc"] = auc(conf[acc & right], conf[acc & ~right])
     out["renders"] = float(np.mean([r["renders"] for r in rows])) if n else math.nan
     out["seconds"] = float(np.mean([r["seconds"] for r in rows])) if n else math.nan
     return out
@@ -113,8 +130,8 @@ def table(rows: list[dict], scenes, localizers) -> list[str]:
     """Markdown rows: one per localizer x scene present in ``rows``, then every localizer pooled per scene and the
     whole pool."""
     head = ["| localizer | scene | N | recall 1/2/5/10 before | after | median before | after | accepted | "
-            "worse (95 % ub) | clearly worse (95 % ub) | within 1/2/3 sigma t | R | renders | s / q |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "worse (95 % ub) | clearly worse (95 % ub) | within 1/2/3 sigma t | R | confidence AUC | renders | s / q |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def fmt(loc, scene, sel):
         if not sel:
@@ -126,7 +143,8 @@ def table(rows: list[dict], scenes, localizers) -> list[str]:
                 f"{s['median0'][0]:.2f} / {s['median0'][1]:.2f} | {s['median1'][0]:.2f} / {s['median1'][1]:.2f} | "
                 f"{s['accepted']} | {s['worse']} ({100 * s['worse_ub']:.2f} %) | "
                 f"{s['clearly']} ({100 * s['clearly_ub']:.2f} %) | {within[0]} | {within[1]} | "
-                f"{s['renders']:.0f} | {s['seconds']:.2f} |")
+                f"{'-' if math.isnan(s['auc']) else format(s['auc'], '.2f')} | {s['renders']:.0f} | "
+                f"{s['seconds']:.2f} |")
 
     out = list(head)
     for loc in localizers:
@@ -141,6 +159,30 @@ def table(rows: list[dict], scenes, localizers) -> list[str]:
     line = fmt("**all**", "**all**", rows)
     if line:
         out.append(line)
+    return out
+
+
+def compare(before: list[dict], after: list[dict], scenes) -> list[str]:
+    """Markdown rows comparing two runs trial by trial (the trials both hold, matched by scene, localizer, view and
+    error), per scene and pooled: N, recall at 2cm2deg and 5cm5deg, clearly worse, mean renders on all trials and
+    on the ones ``before`` accepted from its gradient route."""
+    key = lambda r: (r["scene"], r["localizer"], r["view"], r["error"])  # noqa: E731
+    base = {key(r): r for r in before}
+    pairs = [(base[key(r)], r) for r in after if key(r) in base]
+    out = ["| scene | N | recall 2/5 before | after | clearly worse before | after | renders before | after | "
+           "renders, gradient-accepted before | after |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for scene in [*scenes, None]:
+        sel = [p for p in pairs if scene is None or p[0]["scene"] == scene]
+        if not sel:
+            continue
+        a, b = summarise([p[0] for p in sel]), summarise([p[1] for p in sel])
+        grad = [p for p in sel if p[0]["accepted"] and p[0]["route"] == "gradient"]
+        fixed = [[p[k]["renders"] for p in grad] for k in (0, 1)]
+        mean = [float(np.mean(x)) if x else math.nan for x in fixed]
+        name = "**all**" if scene is None else scene
+        out.append(f"| {name} | {len(sel)} | {100 * a['recall1'][1]:.0f}/{100 * a['recall1'][2]:.0f} | "
+                   f"{100 * b['recall1'][1]:.0f}/{100 * b['recall1'][2]:.0f} | {a['clearly']} | {b['clearly']} | "
+                   f"{a['renders']:.0f} | {b['renders']:.0f} | {mean[0]:.1f} | {mean[1]:.1f} |")
     return out
 
 
@@ -342,8 +384,16 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="processes, each on its share of the cores")
     ap.add_argument("--raw", default=None, help="keep one JSON line per trial here (default: a temporary file)")
     ap.add_argument("--out", default=None, help="write the table as Markdown here")
+    ap.add_argument("--from-raw", default=None, help="tabulate this raw file instead of running trials")
+    ap.add_argument("--compare", default=None, help="a raw file of another run: compare trial by trial")
     ap.add_argument("--shard", default=None, help=argparse.SUPPRESS)  # "k/n": run every n-th trial from k
     args = ap.parse_args()
+    if args.from_raw:
+        rows = [json.loads(line) for line in Path(args.from_raw).read_text().splitlines()]
+        report(rows, [s for s in SCENES if any(r["scene"] == s for r in rows)],
+               [x for x in LOCALIZERS if any(r["localizer"] == x for r in rows)], args,
+               f"{len(rows)} trials from {args.from_raw}")
+        return
     sys.path.insert(0, str(ROOT))
     if not (DATA / "poses" / "7scenes").exists():
         sys.exit(f"trials: {DATA / 'poses' / '7scenes'} not found (the localizer errors)")
@@ -380,8 +430,16 @@ def main() -> None:
     for p in parts:
         p.unlink()
     seconds = time.time() - t0
-    lines = [f"{len(rows)} trials, preset {args.preset}, {args.jobs} processes, {seconds:.0f} s wall; raw: {raw}", ""]
-    lines += table(rows, scenes, args.localizers)
+    report(rows, scenes, args.localizers, args,
+           f"{len(rows)} trials, preset {args.preset}, {args.jobs} processes, {seconds:.0f} s wall; raw: {raw}")
+
+
+def report(rows: list[dict], scenes, localizers, args, title: str) -> None:
+    """Print the table (and the comparison with ``--compare``'s run) and write it to ``--out``."""
+    lines = [title, ""] + table(rows, scenes, localizers)
+    if args.compare:
+        before = [json.loads(line) for line in Path(args.compare).read_text().splitlines()]
+        lines += ["", f"Trial by trial against {args.compare}:", ""] + compare(before, rows, scenes)
     print("\n".join(lines))
     if args.out:
         from hgsloc_plugin.fileio import atomic_write_bytes

@@ -36,9 +36,9 @@ def test_upper_bound_is_clopper_pearson():
     assert t.upper_bound(5, 5) == 1.0 and t.upper_bound(0, 0) == 1.0
 
 
-def _row(t0, r0, t1, r1, accepted=True, sigma=(1.0, 1.0)):
+def _row(t0, r0, t1, r1, accepted=True, sigma=(1.0, 1.0), confidence=0.5, **kw):
     return {"t0": t0, "r0": r0, "t1": t1, "r1": r1, "accepted": accepted, "moved": accepted,
-            "sigma_t": sigma[0], "sigma_r": sigma[1], "renders": 10, "seconds": 0.1}
+            "sigma_t": sigma[0], "sigma_r": sigma[1], "renders": 10, "seconds": 0.1, "confidence": confidence, **kw}
 
 
 def test_summarise_counts_worse_clearly_worse_and_calibration():
@@ -55,6 +55,22 @@ def test_summarise_counts_worse_clearly_worse_and_calibration():
     # 3/4 within 3
     assert s["within"][0] == [0.5, 0.5, 0.75]
     assert s["clearly_ub"] > 2 / 5 and math.isfinite(s["worse_ub"])
+
+
+def test_confidence_auc_and_trial_by_trial_comparison():
+    t = _trials()
+    assert t.auc([0.9, 0.8], [0.1, 0.2]) == 1.0 and t.auc([0.1], [0.9]) == 0.0
+    assert t.auc([0.5, 0.9], [0.5]) == 0.75 and math.isnan(t.auc([], [0.3]))
+    # right answers (within 2 cm-eq and 1 deg) ranked above the one wrong answer but one: AUC 0.5
+    rows = [_row(3, 1, 0.5, 0.2, confidence=0.9), _row(3, 1, 0.5, 0.2, confidence=0.3),
+            _row(3, 1, 4.0, 0.2, confidence=0.5), _row(3, 1, 4.0, 0.2, accepted=False, confidence=0.0)]
+    assert t.summarise(rows)["auc"] == 0.5
+    key = dict(scene="room", localizer="ace", route="gradient")
+    before = [_row(3, 1, 0.5, 0.2, view=k, error=k, **key) for k in range(4)]
+    after = [dict(r, renders=r["renders"] + 5 * (r["view"] == 0)) for r in before] + [
+        _row(3, 1, 0.5, 0.2, view=9, error=9, **key)]  # a trial only one run holds is left out
+    lines = t.compare(before, after, ["room"])
+    assert lines[2].startswith("| room | 4 | 100/100 | 100/100 | 0 | 0 | 10 | 11 | 10.0 | 11.2 |"), lines[2]
 
 
 def test_plan_trials_is_seeded_and_cycles_fixed_views():

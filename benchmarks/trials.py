@@ -15,9 +15,9 @@ published 7-Scenes hloc poses carry no counts, and nearly all of them are locali
 
 Views (errors in **cm-eq**: centre error x 200 / the view's median depth, so 1 cm-eq is the same image motion on
 every scene):
-- ``room``: random views of the demo room (``hgsloc_plugin.demo``), one per trial;
+- ``room``: ``SYNTHETIC_VIEWS`` random views of the demo room (``hgsloc_plugin.demo``);
 - ``stripes``: random views of the room's striped wall (periodic texture: a wrong minimum one stripe over);
-- ``donut``: random views of ``../shared/data/scenes/donut.ply`` (a small SH-0 object), one per trial;
+- ``donut``: random views of ``../shared/data/scenes/donut.ply`` (a small SH-0 object);
   the three rendered by the independent PyTorch reference (``tests/reference/render_torch.py``), then degraded as
   photos (gain, gamma, blur, noise, an occluder);
 - ``lego``: its 15 held-out Blender renders against a 3DGS fitted to other views;
@@ -29,7 +29,8 @@ Per localizer x scene: N, recall at 1cm1deg / 2cm2deg / 5cm5deg / 10cm10deg befo
 calibration (share of accepted poses whose error lies within 1 / 2 / 3 sigma, centre and rotation; sigma is the
 root of the covariance trace, so a calibrated 3-D Gaussian puts 61 / 99 / 100 % there), the confidence's AUC
 (the probability that an accepted right answer, within 2 cm-eq and 1 deg, has a higher confidence than an accepted
-wrong one), renders and seconds per query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit a calibration).
+wrong one), renders and seconds per query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit
+a calibration).
 """
 
 from __future__ import annotations
@@ -57,8 +58,10 @@ RIGHT_CM, RIGHT_DEG = 2.0, 1.0
 #: 7-Scenes' typical median depth: a localizer's metric error is scaled by a view's depth over this
 REFERENCE_DEPTH = 2.0
 SEED = 2026
-#: random views are numbered per localizer from its index times this (a cell has fewer trials)
-VIEWS_PER_CELL = 100_000
+#: random views per synthetic scene (room, stripes, donut); localizer ``L``'s trial ``i`` takes view
+#: ``(L * SYNTHETIC_VIEWS / 5 + i) % SYNTHETIC_VIEWS``: every view serves several localizers' errors, and rendering
+#: the views with the reference renderer (~2 s each on one core) does not dominate the run
+SYNTHETIC_VIEWS = 200
 
 
 # ---------------------------------------------------------------- statistics (no package imports: cheap to test)
@@ -202,7 +205,7 @@ class Trial:
 def plan_trials(scenes, localizers, per_cell: int, n_errors: dict[str, int], n_views: dict[str, int | None],
                 seed: int = SEED) -> list[Trial]:
     """The trials, in a fixed order: per scene and localizer ``per_cell``, each drawing an error uniformly; views
-    cycle through a data set's fixed views, or are one new random view per trial (``n_views`` None). Each cell
+    cycle through a data set's fixed views, or through ``SYNTHETIC_VIEWS`` random ones (``n_views`` None). Each cell
     draws from its own seeded stream, so a run's cells are the first trials of a run with a larger ``per_cell``
     (a quick run compares with a full one trial by trial) and do not depend on which other cells run."""
     out = []
@@ -211,7 +214,8 @@ def plan_trials(scenes, localizers, per_cell: int, n_errors: dict[str, int], n_v
             rng = np.random.default_rng([seed, SCENES.index(scene), LOCALIZERS.index(loc)])
             nv = n_views[scene]
             for i in range(per_cell):
-                view = LOCALIZERS.index(loc) * VIEWS_PER_CELL + i if nv is None else i % nv
+                first = LOCALIZERS.index(loc) * SYNTHETIC_VIEWS // len(LOCALIZERS)
+                view = (first + i) % SYNTHETIC_VIEWS if nv is None else i % nv
                 out.append(Trial(len(out), scene, view, loc, int(rng.integers(n_errors[loc]))))
     return out
 
@@ -410,7 +414,7 @@ def main() -> None:
     raw = Path(args.raw) if args.raw else Path(os.environ.get("TMPDIR", "/tmp")) / f"trials-{os.getpid()}.jsonl"
     if args.shard:
         k, n = (int(x) for x in args.shard.split("/"))
-        run_trials(trials[k::n], args.preset, raw, progress=k == 0)
+        run_trials([t for t in trials if t.view % n == k], args.preset, raw, progress=k == 0)  # a view: one process
         return
     t0 = time.time()
     parts = [raw.with_suffix(f".part{k}") for k in range(args.jobs)]

@@ -79,7 +79,10 @@ def test_the_python_snippet_runs(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT / "tests"))
     p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, env=env)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.splitlines()[0].startswith("True")  # the refined pose was accepted
+    first = p.stdout.splitlines()[0]
+    assert first.startswith("True"), first  # the refined pose was accepted, and it is no worse than the prior
+    t, r, t0, r0 = (float(x) for x in re.findall(r"[-+]?\d+\.\d+(?:e[-+]?\d+)?", first))
+    assert t <= t0 and r <= r0, first
 
 
 def test_example_scripts_answer_help():

@@ -27,7 +27,7 @@ from .plan import Plan, make_plan
 from .result import RefineResult
 from .routes import Candidate, QueryContext, gradient_route, search_route, wide_search_route
 from .scorer import Scorer
-from .trust import TRUST_REGION_EDGE, Verdict, judge
+from .trust import TRUST_REGION_EDGE, WEAK_ALIGNMENT, Verdict, judge
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -100,9 +100,13 @@ class Refiner:
                 tried = _lower_cost_last([tried[-1], self._judged(ctx, search_route(ctx))])
         if not tried or not tried[-1][1].ends_refinement():
             tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
+            if _agree_but_weakly_aligned(tried, plan, cfg.same_minimum_pixels):
+                logger.debug("query %s: gradient route and search agree, refused for weak alignment only; the "
+                             "rule judges the search's pose on their agreement instead", name)
+                tried.append(self._judged(ctx, tried[-1][0], structural=False))
         if (cfg.wide_step_pixels and cfg.search and cfg.polishes and cfg.neighbourhood == "lattice" and not cfg.levels
                 and not tried[-1][1].ends_refinement()):
-            if _same_minimum(tried, plan, cfg.same_minimum_pixels):
+            if _same_minimum(tried[:2], plan, cfg.same_minimum_pixels):
                 logger.debug("query %s: gradient route and search refused in one minimum (%s); no wide search", name,
                              tried[-1][1].rejected)
                 return _result(ctx, tried, time.perf_counter() - t0)
@@ -116,11 +120,12 @@ class Refiner:
             tried.append(self._judged(ctx, wide_search_route(ctx)))
         return _result(ctx, tried, time.perf_counter() - t0)
 
-    def _judged(self, ctx: QueryContext, cand: Candidate) -> tuple[Candidate, Verdict]:
+    def _judged(self, ctx: QueryContext, cand: Candidate, structural: bool = True) -> tuple[Candidate, Verdict]:
+        """``cand`` and the rule's verdict on it; ``structural`` False: without the alignment test."""
         cfg = self.config
         return cand, judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
-                           lattice=cfg.neighbourhood == "lattice", structural=METRICS[cfg.metric].structural,
-                           pivot=cfg.pivot, name=ctx.name)
+                           lattice=cfg.neighbourhood == "lattice",
+                           structural=structural and METRICS[cfg.metric].structural, pivot=cfg.pivot, name=ctx.name)
 
     def _working_set(self, plan: Plan) -> RendererLike:
         """The renderer the routes use: a :class:`WorkingSet` that follows the poses scored (region radius
@@ -165,6 +170,17 @@ def _lower_cost_last(tried: list[tuple[Candidate, Verdict]]) -> list[tuple[Candi
     if vb.accepted and (not va.accepted or b.cost < a.cost):
         return [(a, va), (b, vb)]
     return [(b, vb), (a, va)]
+
+
+def _agree_but_weakly_aligned(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
+    """Whether the gradient route and the search were both refused for "weak alignment" only, at poses within
+    ``pixels`` of each other (:func:`_same_minimum`): two explorations from different starts (one descends from
+    the prior, one searches a lattice around it) found one minimum in a view whose cost is flat compared with
+    its level (a plain or noisy view, shadows the map does not hold). Their agreement is the evidence the
+    alignment ratio stands in for, so the search's pose is judged again without that test; every other test
+    applies. A far wrong minimum that one route reaches and the other does not stays refused."""
+    return (_same_minimum(tried, plan, pixels)
+            and all(v.rejected == WEAK_ALIGNMENT for _, v in tried))
 
 
 def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:

@@ -45,6 +45,7 @@ PRIOR_MORE_PRECISE = "prior more precise"
 #: refinement is not clearly better than the prior, so the prior is kept
 WITHIN_UNCERTAINTY = "within uncertainty"
 TRUST_REGION_EDGE = "trust-region edge"
+WEAK_ALIGNMENT = "weak alignment"
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -78,6 +79,8 @@ class Assessment:
         rejected: None when accepted, else the reason ("insignificant", "flat valley", ...).
         prior_distance: the prior's Mahalanobis distance from a polished pose under its uncertainty
             (:func:`prior_distance`; nan when not measured).
+        within: :func:`within_tolerance` of a polished pose's own uncertainty, accepted or not (nan when not
+            measured).
     """
 
     significance: float
@@ -89,6 +92,7 @@ class Assessment:
     confidence: float
     rejected: str | None
     prior_distance: float = math.nan
+    within: float = math.nan
 
     def to_dict(self) -> dict:
         return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in vars(self).items()}
@@ -106,7 +110,7 @@ def _shape_reason(alignment: float, sharpness: float, travel: float, level_shift
                   check_alignment: bool) -> str | None:
     """The rule's tests after the improvement ones, in order: the first that fails, or None."""
     if check_alignment and not alignment >= MIN_ALIGNMENT:
-        return "weak alignment"
+        return WEAK_ALIGNMENT
     if not sharpness >= MIN_SHARPNESS:
         return "flat valley"
     if travel > EDGE_FRACTION:
@@ -222,6 +226,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
         rejected, confidence = assessment.rejected, assessment.confidence
         if uncertainty is not None:
             assessment.prior_distance = prior_distance(cand.pose, uncertainty[0], coarse)
+            assessment.within = within_tolerance(uncertainty[1], uncertainty[2], plan.depth)
             if rejected is None and not fuses and assessment.prior_distance < MIN_PRIOR_DISTANCE:
                 rejected = WITHIN_UNCERTAINTY
     elif not cand.cost < cand.cost_initial:

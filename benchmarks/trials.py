@@ -335,6 +335,10 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
     from adapters.confidence import HLOC_FEW_INLIERS, hloc_trust, inlier_trust
 
     hp.init()
+    if "HGSLOC_CPU_THREADS" in os.environ:  # the reference renderer's torch too: its share of the cores, no more
+        import torch
+
+        torch.set_num_threads(int(os.environ["HGSLOC_CPU_THREADS"]))
     views: dict[str, Views] = {}
     refiners: dict[str, hp.HGSLocPlugin] = {}
     errors: dict[str, tuple] = {}

@@ -59,7 +59,8 @@ def resolve_image(name: str, root) -> Path:
         tried.append(str(p))
         if p.is_file():
             return p
-    raise FileNotFoundError(f"image for query {name!r} not found; tried: {', '.join(tried)}")
+    shown = ", ".join(Path(t).relative_to(root).as_posix() for t in tried[:3]) + (", ..." if len(tried) > 3 else "")
+    raise FileNotFoundError(f"no image for query {name!r} under {root} (tried {len(tried)} names: {shown})")
 
 
 def match_names(wanted, available) -> dict[str, str]:

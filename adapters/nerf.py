@@ -108,8 +108,10 @@ def write_transforms_json(path, poses, like: PoseFile) -> Path:
 
 def transforms_cameras(path, *, allow_distortion: bool = False) -> dict[str, Camera]:
     """canonical image name -> Camera at the size the file gives (``w``, ``h``), from its shared or per-frame
-    intrinsics; a non-zero distortion coefficient is refused unless ``allow_distortion`` (the images are already
-    undistorted). ``intrinsics.from_query_list`` scales them to each image's size."""
+    intrinsics. Distortion coefficients become the camera's :class:`~hgsloc_plugin.camera.Distortion` (OpenCV's
+    ``k1 k2 p1 p2``, with ``k3 k4`` FULL_OPENCV, ``is_fisheye`` OPENCV_FISHEYE's ``k1..k4``): the refiner undistorts
+    each photo; all zero, or ``allow_distortion`` (the images are already undistorted), a pinhole camera.
+    ``intrinsics.from_query_list`` scales them to each image's size."""
     path = Path(path)
     data = _load(path)
     table = {}
@@ -129,10 +131,14 @@ def transforms_cameras(path, *, allow_distortion: bool = False) -> dict[str, Cam
         else:
             raise ValueError(f"{path}: frame {k}: no 'fl_x' or 'camera_angle_x' (per frame or shared)")
         fy = float(v.get("fl_y", fx))
-        dist = {d: float(v[d]) for d in DISTORTION if d in v and float(v[d]) != 0.0}
-        if dist and not allow_distortion:
-            raise ValueError(f"{path}: frame {k}: distortion {dist}; 3DGS renders undistorted pinhole images. "
-                             "Undistort the images first and pass --allow-distortion (allow_distortion=True)")
-        table[canonical_name(frame_name(fr))] = Camera(int(round(w)), int(round(h)), fx, fy,
-                                                       float(v.get("cx", w / 2)), float(v.get("cy", h / 2)))
+        c = {d: float(v.get(d, 0.0)) for d in DISTORTION}
+        if v.get("is_fisheye"):
+            model, coeffs = "OPENCV_FISHEYE", [c["k1"], c["k2"], c["k3"], c["k4"]]
+        elif c["k3"] or c["k4"]:
+            model, coeffs = "FULL_OPENCV", [c["k1"], c["k2"], c["p1"], c["p2"], c["k3"], c["k4"], 0.0, 0.0]
+        else:
+            model, coeffs = "OPENCV", [c["k1"], c["k2"], c["p1"], c["p2"]]
+        table[canonical_name(frame_name(fr))] = Camera.from_colmap(
+            model, int(round(w)), int(round(h)), [fx, fy, float(v.get("cx", w / 2)), float(v.get("cy", h / 2)),
+                                                  *coeffs], allow_distortion=allow_distortion)
     return table

@@ -77,7 +77,29 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
         return _ARCH
     with contextlib.redirect_stdout(sys.stderr):  # Taichi prints its banner and arch line on stdout
         _ARCH = _start(requested, debug, cpu_threads)
+    _compile_notice(_ARCH, cpu_threads)
     return _ARCH
+
+
+def _compile_notice(arch: str, cpu_threads: int | None) -> None:
+    """Say that kernels compile as first used when this cache holds no earlier run of this backend and thread
+    count (a marker file, written when the process exits), instead of half a minute without a word."""
+    import atexit
+
+    n = cpu_threads or os.cpu_count() or 1
+    marker = Path(_cache_dir()) / f".hgsloc-{arch}-{n if arch == 'cpu' else 'gpu'}-threads.warm"
+    if marker.exists():
+        return
+    logger.warning("first run on this machine (%s%s): the renderer's kernels compile as they are first used, about "
+                   "30 s on a 2-core CPU, and are cached in %s for later runs", arch,
+                   f", {n} threads" if arch == "cpu" else "", marker.parent)
+
+    def mark() -> None:
+        with contextlib.suppress(OSError):
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+
+    atexit.register(mark)
 
 
 def _start(requested: str, debug: bool, cpu_threads: int | None) -> str:

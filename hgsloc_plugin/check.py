@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera
-from .image import load_image
+from .image import load_image, undistort
 from .pose import Pose
 from .refine import RefineConfig, Refiner
+from .refine.plan import median_depth
 from .refine.scorer import Scorer
 from .render import get_renderer
 from .scene import GaussianScene
@@ -42,6 +43,10 @@ ALIGN_SIDE = 100  # the alignment's finest size (pixels, longer side)
 GOOD = 0.55  # the best reading must cost less than this
 CLEARLY_BETTER = 0.7  # ... and less than this fraction of the second-best reading
 MASK_ALPHA = 0.5  # compare where the map renders something: an empty rendering costs 1, not a match
+#: ... but a reading that renders only a sliver of the image is no match either: its similarity is spread over at
+#: least this share of the pixels the query's best-covered reading renders (snow, 2 % / 1 deg priors: a quaternion
+#: read x y z w rendered 16 of 29,304 pixels, similar there, and passed for the right reading at cs 0.03)
+MIN_COVER = 0.5
 _FLIP = np.diag([1.0, -1.0, -1.0])
 
 #: reading name -> (pose transform, how to fix the input)
@@ -84,6 +89,18 @@ class CheckReport:
     figures: list[str] = field(default_factory=list)
     aligned: dict[str, list[float]] = field(default_factory=dict)
     unreadable: dict[str, str] = field(default_factory=dict)
+    depths: list[float] = field(default_factory=list)
+
+    @property
+    def median_depth(self) -> float:
+        """The map's median depth at the sampled poses as given (scene units; nan when none was read)."""
+        return float(np.median(self.depths)) if self.depths else float("nan")
+
+    @property
+    def scale_for_2m(self) -> float:
+        """``hgsloc evaluate --scale`` (metres per scene unit) that takes the median depth as 2 m, 7-Scenes' typical
+        depth: errors in "cm-eq", comparable across maps of any scale."""
+        return 2.0 / self.median_depth
 
     def median(self, reading: str = "as given") -> float:
         """Median cost of a reading: after the alignment when it was aligned, else as read."""
@@ -131,7 +148,7 @@ class CheckReport:
                                 **{h: c[k] for h, c in self.costs.items()}} for k, n in enumerate(self.names)},
                 "median": {h: self.median(h) for h in self.costs},
                 "aligned": {h: dict(zip(self.names, c)) for h, c in self.aligned.items()}, "figures": self.figures,
-                "unreadable": self.unreadable}
+                "unreadable": self.unreadable, "median_depth": self.median_depth, "scale_for_2m": self.scale_for_2m}
 
 
 def _effective(costs: dict[str, list[float]], aligned: dict[str, list[float]]) -> dict[str, list[float]]:
@@ -175,32 +192,36 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
     renderer = get_renderer(scene)
     costs: dict[str, list[float]] = {h: [] for h in HYPOTHESES}
     psnr, ssim, figs = [], [], []
-    used, data, unreadable = [], [], {}
+    used, data, unreadable, depths, covers = [], [], {}, [], []
     for name in names:
         try:
             img = load_image(image_of(name), name=name, background=background)
         except (FileNotFoundError, OSError, ValueError, KeyError) as exc:  # refine records it per query
-            logger.warning("check: cannot read %s: %s", name, exc)
+            logger.debug("check: cannot read %s: %s", name, exc)  # the report's message names it, once
             unreadable[name] = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             continue
         used.append(name)
-        full = intrinsics(name, img.shape[1], img.shape[0])
+        img, full = undistort(img, intrinsics(name, img.shape[1], img.shape[0]))
         data.append((img, full))
+        depths.append(median_depth(scene, full, poses[name]))
         cam = full.with_max_side(SIDE)
         scorer = Scorer(renderer, "cs", background, MASK_ALPHA)
         scorer.set_query(cam, img)
-        for h, (f, _) in HYPOTHESES.items():
-            costs[h].append(float(scorer([f(poses[name])])[0]))
+        sums = renderer.window_cost(cam, [f(poses[name]) for f, _ in HYPOTHESES.values()],
+                                    scorer.window_query(cam, img), background, MASK_ALPHA)
+        covers.append(MIN_COVER * float(np.max(sums[:, 1])))
+        for h, c in zip(HYPOTHESES, covered_cost(sums, covers[-1])):
+            costs[h].append(float(c))
         rgb, _, _ = renderer.render_full(cam, [poses[name]], background)
         q = scorer.query
         psnr.append(float(10 * np.log10(1.0 / max(float(np.mean((rgb[0] - q) ** 2)), 1e-12))))
         a, b = (torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None] for x in (rgb[0], q))
         ssim.append(float(kornia.metrics.ssim(a, b, 11).mean()))
         if figures is not None:
-            from .viz import save_png
+            from .viz import check_figure
 
-            path = Path(figures) / (name.replace("/", "_") + ".check.png")
-            save_png(np.concatenate([q, rgb[0]], axis=1), path)
+            path = Path(figures) / (Path(name.replace("/", "_")).stem + ".check.png")
+            check_figure(q, rgb[0], name, costs["as given"][-1], path)
             figs.append(str(path))
     if not used:
         name, why = next(iter(unreadable.items()))
@@ -211,7 +232,7 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
     if not clear and align:
         others = sorted((h for h in costs if h != "as given"), key=lambda h: float(np.median(costs[h])))
         for h in ["as given"] + others:  # in order of raw cost, until one settles it
-            aligned[h] = _aligned_costs(scene, poses, names, data, HYPOTHESES[h][0], background)
+            aligned[h] = _aligned_costs(scene, poses, names, data, covers, HYPOTHESES[h][0], background)
             best, second, clear = _verdict(_effective(costs, aligned))
             if clear:
                 break
@@ -221,22 +242,30 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
         verdict, reading, hint = "convention error", best, HYPOTHESES[best][1]
     else:
         verdict, reading, hint = "disagree", best, ""
-    return CheckReport(names, costs, psnr, ssim, verdict, reading, hint, figs, aligned, unreadable)
+    return CheckReport(names, costs, psnr, ssim, verdict, reading, hint, figs, aligned, unreadable, depths)
 
 
-def _aligned_costs(scene: GaussianScene, poses: Mapping[str, Pose], names: list[str], data: list, reading,
-                   background) -> list[float]:
+def covered_cost(sums: np.ndarray, cover: float) -> np.ndarray:
+    """The check's cost of poses [B] from their windowed cs sums [B, 2] (similarity sum, pixels compared): one less
+    the mean similarity over at least ``cover`` pixels (the pixels a pose does not render count as unrelated)."""
+    sums = np.asarray(sums, np.float64)
+    return 1.0 - sums[:, 0] / np.maximum(np.maximum(sums[:, 1], cover), 1.0)
+
+
+def _aligned_costs(scene: GaussianScene, poses: Mapping[str, Pose], names: list[str], data: list,
+                   covers: list[float], reading, background) -> list[float]:
     """The check's cost of each sampled query after the refiner's gradient route moved the reading's pose to its
     nearest minimum (at ``ALIGN_SIDE`` px and below; the raw pose's cost where the route fails)."""
     refiner = Refiner(scene, RefineConfig.preset("gradient", background=tuple(background),
                                                  score_max_side=ALIGN_SIDE, polish_max_side=ALIGN_SIDE))
     scorer = Scorer(refiner.renderer, "cs", background, MASK_ALPHA)
     out = []
-    for name, (img, cam) in zip(names, data):
+    for name, (img, cam), cover in zip(names, data, covers):
         start = reading(poses[name])
         res = refiner.try_refine(img, cam, start, name=name)
         moved = res.search_pose if res.error is None and res.search_pose is not None else start
-        scorer.set_query(cam.with_max_side(SIDE), img)
-        out.append(float(scorer([moved])[0]))
+        side = cam.with_max_side(SIDE)
+        sums = refiner.renderer.window_cost(side, [moved], scorer.window_query(side, img), background, MASK_ALPHA)
+        out.append(float(covered_cost(sums, cover)[0]))
         logger.debug("check: %s aligned (%s) to cs cost %.3f", name, res.rejected or "accepted", out[-1])
     return out

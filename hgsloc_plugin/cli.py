@@ -49,7 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "trainer's cameras.json")
     r.add_argument("--colmap", help="COLMAP model folder")
     r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
-    r.add_argument("--allow-distortion", action="store_true", help="images are undistorted: ignore k, p")
+    r.add_argument("--allow-distortion", action="store_true",
+                   help="the photos are already undistorted: drop the intrinsics' distortion coefficients (by "
+                        "default each photo with distortion is undistorted to a pinhole camera first)")
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
     r.add_argument("--config", default="default", help=PRESET_HELP)
     r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
@@ -77,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: 4 on the CPU, 32 on CUDA)")
     r.add_argument("--ray-address", help="run on an existing Ray cluster ('auto' or ray://host:port)")
     r.add_argument("--quiet", action="store_true")
+    r.add_argument("--restart", action="store_true",
+                   help="discard an earlier run's results in --out and start over (by default a rerun resumes: "
+                        "results of unchanged queries are kept; a run of another map or settings is refused)")
     r.add_argument("--skip-check", action="store_true", help="do not check map/pose agreement first")
     r.add_argument("--json", action="store_true", help="print the totals as one JSON object (also on error)")
     r.set_defaults(func=cmd_refine)
@@ -91,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
                                          "trainer's cameras.json")
     c.add_argument("--colmap", help="COLMAP model folder")
     c.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
-    c.add_argument("--allow-distortion", action="store_true")
+    c.add_argument("--allow-distortion", action="store_true",
+                   help="the photos are already undistorted: drop the intrinsics' distortion coefficients")
     c.add_argument("--white-background", action="store_true")
     c.add_argument("--sample", type=positive_count_arg, default=8, help="queries to render (evenly spaced)")
     c.add_argument("--figures", help="write query | rendering images here")
@@ -103,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--gt", required=True, action="append", help="ground truth (repeat per scene)")
     e.add_argument("--scale", type=float, help="metres per scene unit, for a map of arbitrary scale (default: the "
                                                 "scene units are metres)")
+    e.add_argument("--missing-as-failure", action="store_true",
+                   help="score ground-truth images without an estimate as failures (a benchmark's protocol over "
+                        "its whole test set; by default the images both files hold are scored)")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_evaluate)
 
@@ -116,11 +125,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     n = sub.add_parser("perturb", help="noisy priors from poses (e.g. ground truth), written in the input's dialect")
     n.add_argument("--poses", required=True, help="pose file (any dialect, transforms.json included)")
-    n.add_argument("--noise", required=True, help="'2cm,1deg': each centre moved exactly 2 cm (scene units taken "
-                                                  "as metres) and each rotation exactly 1 deg, random directions; "
-                                                  "or the paper's 'q2,t1'")
+    n.add_argument("--noise", required=True,
+                   help="'2%%,1deg': each centre moved exactly 2 %% of its query's median depth (needs --scene, "
+                        "--images and the intrinsics: any map's scale) and each rotation exactly 1 deg, random "
+                        "directions; '2cm,1deg': 0.02 scene units (metres only on a metric map); or the HGSLoc "
+                        "paper's 'q2,t1' (raw quaternion and translation components; metric: 7-Scenes, Cambridge)")
     n.add_argument("--seed", type=int, default=0, help="random seed (same seed, same output)")
     n.add_argument("--out", required=True, help="the perturbed pose file")
+    n.add_argument("--scene", help="3DGS map, for --noise P%%,Rdeg")
+    n.add_argument("--images", help="folder with the query images, for --noise P%%,Rdeg")
+    n.add_argument("--focal", type=float, help="for --noise P%%,Rdeg: one focal length, centred principal point")
+    n.add_argument("--intrinsics", help="for --noise P%%,Rdeg: a query list, transforms.json or camera JSON")
+    n.add_argument("--colmap", help="for --noise P%%,Rdeg: a COLMAP model folder")
+    n.add_argument("--pgt-focal", help="for --noise P%%,Rdeg: a pGT file whose 9th column is the focal")
+    n.add_argument("--allow-distortion", action="store_true", help=argparse.SUPPRESS)
     n.set_defaults(func=cmd_perturb)
 
     m = sub.add_parser("demo", help="run the whole chain on the embedded procedural room")

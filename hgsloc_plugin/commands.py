@@ -36,7 +36,8 @@ def _white(args) -> bool:
 
 
 def cmd_refine(args) -> int:
-    from .pipeline import refine_pose_file
+    from .pipeline import refine_pose_file, resumable
+    from .plugin import HGSLocPlugin
     from .refine import RefineConfig
 
     overrides = {}
@@ -54,23 +55,27 @@ def cmd_refine(args) -> int:
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
+    _require_folder(args.images)
     scene, pf = inputs = _inputs(args)
     intrinsics = _intrinsics(args)  # read once (a COLMAP model, a query list) for the check and the refinement
+    refiner = HGSLocPlugin(scene, config)
+    resumable(refiner, pf, Path(args.out), args.restart)  # a resume of other inputs is refused before any work
     if not args.skip_check:  # refining poses in another frame or convention would return nonsense
         rep = _check(args, 4, inputs=inputs, intrinsics=intrinsics)
         if not rep.agrees:
             raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
                              "refines anyway)")
-    rep = refine_pose_file(scene, pf, Path(args.images), intrinsics, Path(args.out),
+    rep = refine_pose_file(refiner, pf, Path(args.images), intrinsics, Path(args.out),
                            config=config, limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
                            workers=args.workers, ray_address=args.ray_address, batch_size=args.batch_size,
-                           inlier_region=not args.no_inlier_region)
+                           inlier_region=not args.no_inlier_region, restart=args.restart)
     failed = {n: q["error"] for n, q in rep["queries"].items() if q.get("error")}
     for name, why in failed.items():
         print(f"hgsloc: failed: {name}: {why}", file=sys.stderr)
     if args.json:
-        print(dumps_json({"output": str(args.out), "report": str(args.out) + ".json", "totals": rep["totals"],
+        print(dumps_json({"output": str(args.out), "report": str(args.out) + ".json", "complete": rep["complete"],
+                          "totals": rep["totals"],
                           "this_run": rep["this_run"], "resumed": rep["resumed"], "failed": failed}))
     else:
         if rep["resumed"]:
@@ -83,16 +88,24 @@ def cmd_refine(args) -> int:
 
 def summary_line(t: dict, out) -> str:
     """One line: refined (fused with the prior), kept (per reason), failed, median confidence, effort (renders,
-    queries that needed the lattice search, seconds)."""
+    queries that needed the lattice search, wall-clock seconds and their share per query)."""
     kept = sum(t.get("rejected", {}).values())
     why = ", ".join(f"{k} {v}" for k, v in t.get("rejected", {}).items())
     conf, st, sr = t.get("median_confidence"), t.get("median_sigma_t"), t.get("median_sigma_r_deg")
     sig = f", median sigma {st:.3g} / {sr:.3g} deg" if st is not None and sr is not None else ""
     fused = f" ({t['fused']} fused with the prior's expected error)" if t.get("fused") else ""
+    per = f", {t['seconds_per_query']:.2f} s/query" if t.get("queries") else ""
     return (f"refined {t['accepted']} / {t['queries']} queries{fused}, kept the prior for {kept}"
             + (f" ({why})" if why else "") + f", {t['failed']} failed; median confidence "
             + (f"{conf:.2f}" if conf is not None else "-") + sig
-            + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['seconds']:.1f} s -> {out}")
+            + f"; {t['renders']} renders, {t.get('searched', 0)} searched, {t['wall_seconds']:.1f} s wall{per} "
+            f"-> {out}")
+
+
+def _require_folder(path) -> None:
+    """A FileNotFoundError naming ``path`` when it is not a folder (``--images``)."""
+    if not Path(path).is_dir():
+        raise FileNotFoundError(f"{path}: image folder not found (--images)")
 
 
 def _inputs(args):
@@ -116,7 +129,7 @@ def _check(args, sample: int, figures=None, inputs=None, intrinsics=None):
 
 
 def cmd_check(args) -> int:
-
+    _require_folder(args.images)
     rep = _check(args, args.sample, Path(args.figures) if args.figures else None)
     if args.json:
         print(dumps_json(rep.to_dict()))
@@ -127,6 +140,9 @@ def cmd_check(args) -> int:
             print(f"{n}: cs cost {rep.costs['as given'][k]:.3f}{moved} (best other reading '{alt}' "
                   f"{rep.costs[alt][k]:.3f}), PSNR {rep.psnr[k]:.1f} dB, SSIM {rep.ssim[k]:.3f}")
         print(f"{rep.verdict}: {rep.message()}")
+        print(f"median depth {rep.median_depth:.4g} scene units at the sampled poses: 'hgsloc evaluate --scale "
+              f"{rep.scale_for_2m:.3g}' gives errors in cm as if it were 2 m (a 7-Scenes room), comparable across "
+              "maps (its cm-eq)")
     return 0 if rep.ok else 1
 
 
@@ -138,17 +154,21 @@ def cmd_evaluate(args) -> int:
         raise ValueError("give one --gt per --poses (one pair per scene)")
     results = []
     for p, g in zip(args.poses, args.gt):
+        _require_complete(p)
         est, gt = read_poses(p), read_poses(g)
         missing, extra = unmatched(est, gt)
         if len(missing) == len(gt):  # wrong pair of files, or a name style the matcher misses
             raise ValueError(f"{p}: none of its {len(est)} estimates names an image of {g} (e.g. "
                              f"{next(iter(est))!r} vs {next(iter(gt))!r}): not the ground truth of these poses?")
+        if extra:  # e.g. a transforms.json of every frame against the held-out frames' ground truth
+            print(f"hgsloc: error: {len(extra)} of the {len(est)} estimates in {p} name no image of {g} (e.g. "
+                  f"{extra[0]!r}): not scored", file=sys.stderr)
         if missing:
-            logger.warning("%s: %d of the %d images of %s have no estimate (counted as failed), e.g. %r", p,
-                           len(missing), len(gt), g, missing[0])
-        if extra:
-            logger.warning("%s: %d estimates name no image of %s (not counted), e.g. %r", p, len(extra), g, extra[0])
-        r = evaluate(est, gt, scale_to_m=args.scale)
+            how = "counted as failed" if args.missing_as_failure else "not scored; --missing-as-failure counts them"
+            logger.warning("%s: %d of the %d images of %s have no estimate (%s), e.g. %r", p, len(missing), len(gt),
+                           g, how, missing[0])
+        r = evaluate(est, gt, scale_to_m=args.scale, missing_as_failure=args.missing_as_failure)
+        r["without_ground_truth"] = len(extra)
         r.pop("errors")
         r["poses"], r["gt"] = p, g
         results.append(r)
@@ -160,7 +180,8 @@ def cmd_evaluate(args) -> int:
     print(f"units: {units_note(args.scale)}")
     for r in results:
         rc = r["recall"]
-        print(f"{r['poses']}: n={r['n']} missing={r['missing']} median {r['median_translation_cm']:.2f} cm / "
+        print(f"{r['poses']}: n={r['n']} (ground truth without estimate {r['missing']}, estimates without ground "
+              f"truth {r['without_ground_truth']}) median {r['median_translation_cm']:.2f} cm / "
               f"{r['median_rotation_deg']:.3f} deg, recall 5cm5deg {100 * rc['5cm5deg']:.1f}% "
               f"2cm2deg {100 * rc['2cm2deg']:.1f}% 1cm1deg {100 * rc['1cm1deg']:.1f}%")
     if len(results) > 1:
@@ -169,6 +190,17 @@ def cmd_evaluate(args) -> int:
         print(f"mean over {m['scenes']} scenes: {m['median_translation_cm']:.2f} cm / {m['median_rotation_deg']:.3f} "
               f"deg, {100 * rc['5cm5deg']:.1f} / {100 * rc['2cm2deg']:.1f} / {100 * rc['1cm1deg']:.1f} %")
     return 0
+
+
+def _require_complete(path) -> None:
+    """A ValueError when ``path``'s report (``refine``'s ``PATH.json``) says its run did not complete."""
+    from .pipeline import read_report, report_path
+
+    rep = read_report(Path(path))
+    if rep is not None and rep.get("complete") is False:
+        done = (rep.get("totals") or {}).get("queries", 0)
+        raise ValueError(f"{path}: the run that writes it has not completed ({report_path(Path(path))}: "
+                         f"\"complete\": false, {done} queries done); rerun its refine command to finish it")
 
 
 def _floats(text: str, n: int, what: str) -> list[float]:
@@ -205,15 +237,47 @@ def cmd_perturb(args) -> int:
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
     pf = read_poses(args.poses)
+    depth_of = _depths(args, pf) if kind == "depth" else {}
     rng = np.random.default_rng(args.seed)
-    poses = {n: apply_protocol(p, args.noise, rng) for n, p in pf.items() if p is not None}
+    poses = {n: apply_protocol(p, args.noise, rng, depth_of.get(n)) for n, p in pf.items() if p is not None}
     write_poses(args.out, poses, like=pf)
-    what = (f"each camera centre moved exactly {a:g} scene units and rotated exactly {b:g} deg, random directions"
-            if kind == "se3" else f"the paper's q{int(a)},t{int(b)} noise on the raw components")
+    if kind == "se3":
+        what = f"each camera centre moved exactly {a:g} scene units and rotated exactly {b:g} deg, random directions"
+    elif kind == "depth":
+        d = float(np.median(list(depth_of.values())))
+        what = (f"each camera centre moved exactly {100 * a:g} % of its median depth (median depth {d:.3g} scene "
+                f"units: {a * d:.3g}) and rotated exactly {b:g} deg, random directions")
+    else:
+        what = f"the paper's q{int(a)},t{int(b)} noise on the raw components (metric: 10^-{int(b)} m per step)"
     kept = len(pf) - len(poses)
     print(f"wrote {args.out}: {len(poses)} poses ({what}; seed {args.seed})"
           + (f"; {kept} failed priors copied as they are" if kept else ""))
     return 0
+
+
+def _depths(args, pf) -> dict:
+    """name -> the median depth (scene units) of the map at each usable pose, for ``perturb --noise P%,Rdeg``."""
+    from PIL import Image
+
+    from .adapters.names import resolve_image
+    from .refine.plan import median_depth
+    from .scene import GaussianScene
+
+    sources = [args.focal, args.intrinsics, args.colmap, args.pgt_focal]
+    if args.scene is None or args.images is None or all(x is None for x in sources):
+        raise ValueError(f"--noise {args.noise}: a share of each query's median depth needs the map and the "
+                         "cameras: give --scene, --images and one of --focal, --intrinsics, --colmap, --pgt-focal "
+                         "(as for refine)")
+    _require_folder(args.images)
+    scene, intrinsics = GaussianScene.from_ply(args.scene), _intrinsics(args)
+    out = {}
+    for n, p in pf.items():
+        if p is None:
+            continue
+        with Image.open(resolve_image(n, args.images)) as im:
+            w, h = im.size
+        out[n] = median_depth(scene, intrinsics(n, w, h), p)
+    return out
 
 
 def cmd_demo(args) -> int:

@@ -35,15 +35,18 @@ def units_note(scale_to_m: float | None) -> str:
     return f"cm with 1 scene unit = {scale_to_m:g} m"
 
 
-def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, scale_to_m: float | None = None) -> dict:
+def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, scale_to_m: float | None = None,
+             missing_as_failure: bool = False) -> dict:
     """Errors of ``estimates`` against ``gt``; names are matched across styles (canonical keys).
 
-    Missing queries (and failed priors) count as failures: e_t = inf, e_R = 180. ``scale_to_m``: metres per scene
-    unit (None: the scene units are taken as metres, as in 7-Scenes and Cambridge).
+    The images both hold are scored (a failed prior counts as a failure: e_t = inf, e_R = 180); ground-truth images
+    without an estimate are counted in ``missing`` and, with ``missing_as_failure``, scored as failures too (a
+    benchmark's protocol over its whole test set). ``scale_to_m``: metres per scene unit (None: the scene units are
+    taken as metres, as in 7-Scenes and Cambridge).
 
     Returns:
-        dict with n, missing, median_translation_cm, median_rotation_deg, recall {"5cm5deg", "2cm2deg",
-        "1cm1deg"} as fractions, per-query errors ``errors`` {name: [t_cm, r_deg]}, and ``units``
+        dict with n (images scored), missing, median_translation_cm, median_rotation_deg, recall {"5cm5deg",
+        "2cm2deg", "1cm1deg"} as fractions, per-query errors ``errors`` {name: [t_cm, r_deg]}, and ``units``
         {"scale_to_m", "assumed_metric", "note"}.
     """
     if scale_to_m is not None and not (math.isfinite(scale_to_m) and scale_to_m > 0):
@@ -60,6 +63,8 @@ def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, sc
         key = canonical_name(name)
         if key not in est_by_key:
             missing += 1
+            if not missing_as_failure:
+                continue
         t, r = pose_errors(est_by_key.get(key), g)
         t *= scale
         et.append(t)
@@ -71,6 +76,7 @@ def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, sc
     return {
         "n": n,
         "missing": missing,
+        "missing_as_failure": missing_as_failure,
         "median_translation_cm": float(np.median(et) * 100) if n else math.nan,
         "median_rotation_deg": float(np.median(er)) if n else math.nan,
         "recall": recall,

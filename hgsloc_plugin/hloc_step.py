@@ -32,19 +32,24 @@ logger = logging.getLogger("hgsloc_plugin")
 
 def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Path, config=None,
          limit: int | None = None, gt_variant: str | None = None, allow_distortion: bool = False,
-         batch_size: int | None = None, inlier_region: bool = True) -> Path:
+         batch_size: int | None = None, inlier_region: bool = True, restart: bool = False,
+         flags: dict[str, str] | None = None) -> Path:
     """Refine hloc's ``results`` with the 3DGS ``scene``; intrinsics from ``queries`` (with intrinsics).
 
-    Returns the path of the refined results (HLoc dialect), with a JSON report beside it. ``results`` is read as
-    hloc writes it (``name qw qx qy qz tx ty tz`` per line): any other line is an error naming it.
+    Returns the path of the refined results (HLoc dialect), written when every query has its result, with a JSON
+    report beside it (``pipeline.refine_pose_file``: a rerun resumes; ``restart`` starts over). ``results`` is read
+    as hloc writes it (``name qw qx qy qz tx ty tz`` per line): any other line is an error naming it.
     ``batch_size``: queries refined together (``batch.run_batch``; None: the backend's default).
     ``inlier_region``: read hloc's PnP inlier counts from ``<results>_logs.pkl`` (one warning when missing).
+    ``allow_distortion``: the photos are already undistorted (by default a camera with distortion has its photo
+    undistorted first). ``flags``: how messages name the options (the command line passes its own).
     """
     logger.info("Refining %s with %s", results, scene)
+    flags = flags or {"restart": "restart=True", "allow_distortion": "allow_distortion=True"}
     refine_pose_file(scene, Path(results), Path(image_dir),
                      from_query_list(queries, allow_distortion=allow_distortion), Path(output),
                      config=config, limit=limit, gt_variant=gt_variant, dialect="hloc", batch_size=batch_size,
-                     inlier_region=inlier_region, expect_hloc_log=inlier_region)
+                     inlier_region=inlier_region, expect_hloc_log=inlier_region, restart=restart, flags=flags)
     return Path(output)
 
 
@@ -61,7 +66,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--output", type=Path, required=True)
     ap.add_argument("--config", default="default", help=PRESET_HELP)
     ap.add_argument("--limit", type=count_arg)
-    ap.add_argument("--allow_distortion", action="store_true")
+    ap.add_argument("--allow_distortion", action="store_true",
+                    help="the photos are already undistorted: drop the query list's distortion coefficients (by "
+                         "default each photo with distortion is undistorted to a pinhole camera first)")
+    ap.add_argument("--restart", action="store_true",
+                    help="discard an earlier run's results in --output and start over (by default a rerun resumes)")
     ap.add_argument("--batch_size", type=positive_count_arg, help="queries refined together (default: 4 on the "
                                                                   "CPU, 32 on CUDA)")
     ap.add_argument("--no_inlier_region", action="store_true",
@@ -74,7 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cli(argv=None) -> int:
-    """The shell entry point; user errors end in one line on stderr and exit code 2."""
+    """The shell entry point; user errors end in one line on stderr and exit code 2; failed queries are named on
+    stderr, exit code 3 (every other result is written); an interrupt exits 130 (rerun to resume)."""
+    from .pipeline import read_report
     from .refine import RefineConfig
     from .units import prior_error_overrides
 
@@ -85,11 +96,18 @@ def cli(argv=None) -> int:
                                           ("--prior_error", "--prior_rotation_error"))
         main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
              a.limit, allow_distortion=a.allow_distortion, batch_size=a.batch_size,
-             inlier_region=not a.no_inlier_region)
+             inlier_region=not a.no_inlier_region, restart=a.restart,
+             flags={"restart": "--restart", "allow_distortion": "--allow_distortion"})
+    except KeyboardInterrupt:
+        print("hloc step: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
     except (ValueError, FileNotFoundError, KeyError, OSError) as exc:
         print(f"hloc step: error: {exc}", file=sys.stderr)
         return 2
-    return 0
+    failed = {n: q["error"] for n, q in read_report(a.output)["queries"].items() if q.get("error")}
+    for name, why in failed.items():
+        print(f"hloc step: failed: {name}: {why}", file=sys.stderr)
+    return 3 if failed else 0
 
 
 if __name__ == "__main__":

@@ -39,27 +39,39 @@ def se3_noise(T_cam_world: Pose, rot_deg: float, trans: float, rng: np.random.Ge
 
 
 def parse_protocol(spec: str) -> tuple[str, float, float]:
-    """Parse "q2,t1" / "q2_t1" (paper) or "3cm,1deg" / "0.03m,1deg" (SE(3)) -> (kind, a, b).
+    """Parse "q2,t1" / "q2_t1" (paper), "3cm,1deg" / "0.03m,1deg" (SE(3), scene units) or "2%,1deg" (SE(3), a
+    share of the query's median depth) -> (kind, a, b).
 
-    Returns ("qt", A, B) or ("se3", metres, degrees).
+    Returns ("qt", A, B), ("se3", scene units, degrees) or ("depth", fraction of the depth, degrees).
     """
     s = spec.strip().lower().replace("_", ",").replace(" ", "")
     parts = s.split(",")
+    usage = f"noise spec {spec!r}: expected 'qA,tB', 'Dcm,Rdeg' or 'P%,Rdeg'"
     if len(parts) != 2:
-        raise ValueError(f"noise spec {spec!r}: expected 'qA,tB' or 'Dcm,Rdeg'")
-    if parts[0].startswith("q") and parts[1].startswith("t"):
-        return "qt", int(parts[0][1:]), int(parts[1][1:])
-    t_part = next((p for p in parts if p.endswith("cm") or p.endswith("m")), None)
-    r_part = next((p for p in parts if p.endswith("deg")), None)
-    if t_part is None or r_part is None:
-        raise ValueError(f"noise spec {spec!r}: expected 'qA,tB' or 'Dcm,Rdeg'")
-    metres = float(t_part[:-2]) / 100 if t_part.endswith("cm") else float(t_part[:-1])
-    return "se3", metres, float(r_part[:-3])
+        raise ValueError(usage)
+    try:
+        if parts[0].startswith("q") and parts[1].startswith("t"):
+            return "qt", int(parts[0][1:]), int(parts[1][1:])
+        t_part = next((p for p in parts if p.endswith(("cm", "m", "%"))), None)
+        r_part = next((p for p in parts if p.endswith("deg")), None)
+        if t_part is None or r_part is None:
+            raise ValueError(usage)
+        deg = float(r_part[:-3])
+        if t_part.endswith("%"):
+            return "depth", float(t_part[:-1]) / 100, deg
+        return "se3", float(t_part[:-2]) / 100 if t_part.endswith("cm") else float(t_part[:-1]), deg
+    except ValueError as exc:
+        raise ValueError(usage) from exc
 
 
-def apply_protocol(T_cam_world: Pose, spec: str, rng: np.random.Generator) -> Pose:
-    """Perturb a pose by the protocol named by ``spec`` (see :func:`parse_protocol`)."""
+def apply_protocol(T_cam_world: Pose, spec: str, rng: np.random.Generator, depth: float | None = None) -> Pose:
+    """Perturb a pose by the protocol named by ``spec`` (see :func:`parse_protocol`); a share of the depth needs
+    the query's median ``depth`` (scene units)."""
     kind, a, b = parse_protocol(spec)
     if kind == "qt":
         return qt_noise(T_cam_world, int(a), int(b), rng)
+    if kind == "depth":
+        if depth is None:
+            raise ValueError(f"noise spec {spec!r} is a share of the query's median depth: give the depth")
+        return se3_noise(T_cam_world, b, a * depth, rng)
     return se3_noise(T_cam_world, b, a, rng)

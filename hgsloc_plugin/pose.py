@@ -117,6 +117,19 @@ class Pose:
 
     # constructors
     @classmethod
+    def from_stored(cls, qvec, tvec) -> Pose:
+        """A pose from the ``qvec`` / ``tvec`` of a pose made earlier (a report's record): kept bit for bit where
+        the quaternion is already unit with w >= 0 (the constructor's division would move its last bits), else
+        normalised as by the constructor."""
+        pose = cls(qvec, tvec)
+        q = np.asarray(qvec, dtype=np.float64).reshape(-1)
+        if q[0] >= 0 and abs(float(np.linalg.norm(q)) - 1.0) < 1e-12:
+            q = q.copy()
+            q.flags.writeable = False
+            object.__setattr__(pose, "qvec", q)
+        return pose
+
+    @classmethod
     def identity(cls) -> Pose:
         return cls([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
 

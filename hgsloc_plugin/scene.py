@@ -217,6 +217,18 @@ class GaussianScene:
         atomic_write_bytes(path, payload)
         return path
 
+    def digest(self) -> str:
+        """A SHA-256 (hex) of what renders: the activated means, rotations, scales, opacities and SH coefficients,
+        with their shapes; equal for the same map read from any file or path."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for a in (self.means, self.quats, self.scales, self.opacities, self.sh):
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(memoryview(a).cast("B"))
+        return h.hexdigest()
+
     # geometry helpers
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Robust bounding box (1st and 99th percentile of the means): (lo [3], hi [3])."""

@@ -44,23 +44,54 @@ def comparison_figure(scene: GaussianScene, camera: Camera, query: np.ndarray, c
     """One PNG of four titled panels: the coarse and the refined pose's rendering split with the query along the
     diagonal (rendering top left, query bottom right: misalignment shows at the seam), and each one's heat map of
     the mean absolute difference to the query over RGB (0 to ``HEAT_MAX``, with a colour bar)."""
+    fig = comparison_panels(scene, camera, query, coarse, refined, background, max_side)
+    return _save_figure(_pyplot(), fig, path, tight=False)
+
+
+def comparison_panels(scene: GaussianScene, camera: Camera, query: np.ndarray, coarse: Pose, refined: Pose,
+                      background=(0.0, 0.0, 0.0), max_side: int = 320):
+    """The matplotlib figure of :func:`comparison_figure` (not saved, not closed)."""
     from .image import resize_image
 
     cam = camera.with_max_side(max_side)
     q = resize_image(query.astype(np.float32), cam.width, cam.height)
     r0, r1 = render(scene, cam, [coarse, refined], background=background)
     plt = _pyplot()
-    fig, ax = plt.subplots(2, 2, figsize=(2 * cam.width / 80 + 1.2, 2 * cam.height / 80 + 0.9))
+    pw, ph = _panel_size(cam)
+    fig, ax = plt.subplots(2, 2, figsize=(2 * pw + 1.2, 2 * ph + 1.3))
     for col, (r, what) in enumerate(((r0, "coarse"), (r1, "refined"))):
         ax[0, col].imshow(diagonal_split(r, q))
-        ax[0, col].set_title(f"{what} pose: rendering (top left) | query", fontsize=8)
+        ax[0, col].set_title(f"{what} pose:\nrendering (top left) | query", fontsize=8)
         d = np.abs(r.astype(np.float64) - q).mean(-1)
         im = ax[1, col].imshow(d, cmap="inferno", vmin=0.0, vmax=HEAT_MAX)
-        ax[1, col].set_title(f"{what}: |rendering - query|, mean {d.mean():.3f}", fontsize=8)
+        ax[1, col].set_title(f"{what}: |rendering - query|\nmean {d.mean():.3f}", fontsize=8)
     for a in ax.ravel():
         a.set_axis_off()
     fig.colorbar(im, ax=ax[1, :].tolist(), shrink=0.8, label="mean |difference| over RGB")
-    return _save_figure(plt, fig, path, tight=False)
+    return fig
+
+
+def _panel_size(cam: Camera, min_width: float = 2.6) -> tuple[float, float]:
+    """(width, height) in inches of an image panel: 80 px an inch, at least ``min_width`` wide (room for a title
+    over a portrait image)."""
+    w = max(cam.width / 80, min_width)
+    return w, w * cam.height / cam.width
+
+
+def check_figure(query: np.ndarray, rendering: np.ndarray, name: str, cost: float, path) -> Path:
+    """One PNG of two titled panels: the query photo and the map's rendering at its pose as given (``hgsloc
+    check``), with the pose's cs cost."""
+    plt = _pyplot()
+    h, w = query.shape[:2]
+    pw, ph = _panel_size(Camera.from_focal(w, h, 1.0))
+    fig, ax = plt.subplots(1, 2, figsize=(2 * pw + 0.4, ph + 0.9))
+    ax[0].imshow(np.clip(query, 0, 1))
+    ax[0].set_title(f"photo\n{name}", fontsize=8)
+    ax[1].imshow(np.clip(rendering, 0, 1))
+    ax[1].set_title(f"map at the pose as given\ncs cost {cost:.3f}", fontsize=8)
+    for a in ax:
+        a.set_axis_off()
+    return _save_figure(plt, fig, path)
 
 
 def _pyplot():
@@ -118,21 +149,33 @@ def cost_trace(entry: dict) -> list[tuple[str, float, float]]:
     return [(k, a if a is not None else b, b) for k, a, b in out if b is not None]
 
 
-def plot_costs(entries: list[dict], path) -> Path | None:
+def plot_costs(entries: list[dict], path, names: list[str] | None = None) -> Path | None:
     """The cost (lower is better) before and after each stage of each query's refinement (:func:`cost_trace`),
-    one colour per query; nothing is written (None) when no query has a stage."""
-    traces = [t for t in (cost_trace(e) for e in entries) if t]
+    one colour per query, named in the legend (``names``, in the order of ``entries``; the first 10); nothing is
+    written (None) when no query has a stage."""
+    fig = cost_figure(entries, names)
+    return None if fig is None else _save_figure(_pyplot(), fig, path)
+
+
+def cost_figure(entries: list[dict], names: list[str] | None = None):
+    """The matplotlib figure of :func:`plot_costs` (None when no query has a stage)."""
+    names = list(names) if names is not None else [f"query {k + 1}" for k in range(len(entries))]
+    traces = [(n, t) for n, t in zip(names, (cost_trace(e) for e in entries)) if t]
     if not traces:
         return None
     plt = _pyplot()
-    stages = list(dict.fromkeys(k for t in traces for k, _, _ in t))
-    fig, ax = plt.subplots(figsize=(1.6 * len(stages) + 2.5, 4))
-    for q, t in enumerate(traces):
+    stages = list(dict.fromkeys(k for _, t in traces for k, _, _ in t))
+    fig, ax = plt.subplots(figsize=(1.6 * len(stages) + 4.5, 4))
+    for q, (name, t) in enumerate(traces):
         colour = f"C{q % 10}"
-        for k, before, after in t:
+        for i, (k, before, after) in enumerate(t):
             x = stages.index(k)
-            ax.plot([x - 0.3, x + 0.3], [before, after], color=colour, marker=".", lw=1.0)
+            ax.plot([x - 0.3, x + 0.3], [before, after], color=colour, marker=".", lw=1.0,
+                    label=name if i == 0 and q < 10 else None)
     ax.set_xticks(range(len(stages)), stages, fontsize=8)
     ax.set_ylabel("cost (lower is better)")
-    ax.set_title("cost before -> after each stage, one colour per query", fontsize=9)
-    return _save_figure(plt, fig, path)
+    ax.set_title("cost before -> after each stage (each segment: one stage of one query)", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+              title=None if len(traces) <= 10 else f"first 10 of {len(traces)}")
+    fig.tight_layout()
+    return fig

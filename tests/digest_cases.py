@@ -149,7 +149,8 @@ def _pose_file():
         for p in q.get("polish", []):
             p.pop("seconds", None)
     for part in ("totals", "this_run"):
-        rep[part].pop("seconds")
+        for key in ("wall_seconds", "seconds_per_query", "query_seconds"):
+            rep[part].pop(key)
     for k in ("input", "output", "scene"):  # paths of this checkout
         rep.pop(k)
     return [], [text, rep]

@@ -81,10 +81,15 @@ def test_evaluator_matches_hand_computation():
     assert np.median(cols[:, 1]) * 100 == pytest.approx(ev["median_translation_cm"], abs=1e-3)
 
 
-def test_missing_queries_count_as_failures():
+def test_missing_queries_are_not_scored_unless_asked():
+    """A ground truth of more images than the estimates (a full gt.txt, a subset refined): the shared ones are
+    scored; with ``missing_as_failure`` (a benchmark's protocol) the others count as failures."""
     gt = {f"seq-01/frame-{i:06d}.color.png": Pose.identity() for i in range(4)}
     est = {"seq-01-frame-000000.color.png": Pose.identity(), "seq-01-frame-000001.color.png": Pose.identity()}
-    ev = evaluate(est, gt)
+    shared = evaluate(est, gt)
+    assert shared["n"] == 2 and shared["missing"] == 2 and shared["recall"]["1cm1deg"] == 1.0
+    assert shared["median_translation_cm"] == 0.0 and "seq-01/frame-000003.color.png" not in shared["errors"]
+    ev = evaluate(est, gt, missing_as_failure=True)
     assert ev["missing"] == 2 and ev["recall"]["1cm1deg"] == 0.5
     assert ev["errors"]["seq-01/frame-000003.color.png"] == [float("inf"), 180.0]
     assert ev["median_translation_cm"] == float("inf")  # median of [0, 0, inf, inf] (numpy: mean of the middle two)
@@ -264,8 +269,13 @@ def test_intrinsics_sources(tmp_path):
     fn = from_query_list(q)
     c = fn("seq-01-frame-000001.color.png", 320, 240)
     assert (c.width, c.fx, c.fy, c.cx) == (320, 260.0, 260.5, 159.5)
-    q.write_text("x.png SIMPLE_RADIAL 640 480 525 320 240 0.1\n")
-    with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:1: .*distortion"):
+    # distortion is carried, zero distortion (how hloc writes a pinhole-like camera) is a pinhole camera
+    q.write_text("x.png SIMPLE_RADIAL 640 480 525 320 240 0.1\ny.png SIMPLE_RADIAL 640 480 525 320 240 0.0\n")
+    cams = parse_query_list(q)
+    assert cams["x"].distortion.coeffs == (0.1,) and cams["y"].distortion is None
+    # a pose file given as a query list is named as such, with its line (not Python's "invalid literal for int()")
+    q.write_text("x.png 1.0 0 0 0 0.1 0.2 0.3\n")
+    with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:1: '1.0' is not a COLMAP camera model.*pose"):
         parse_query_list(q)
     q.write_text("x.png SIMPLE_PINHOLE 640 480 525 320 240\ny.png SIMPLE_PINHOLE 640 480 525 320\n")
     with pytest.raises(ValueError, match=r"queries_with_intrinsics.txt:2: camera model SIMPLE_PINHOLE takes 3"):

@@ -174,3 +174,15 @@ def test_white_background_is_read_from_cfg_args(tmp_path):
     assert ply.name == "point_cloud.ply" and white is True
     assert hp.HGSLocPlugin(run).config.background == (1.0, 1.0, 1.0)
     assert hp.HGSLocPlugin(run, hp.RefineConfig()).config.background == (0.0, 0.0, 0.0)  # explicit config wins
+
+
+def test_a_reading_that_renders_a_sliver_is_no_match():
+    """A reading whose rendering covers 16 pixels, similar there (a quaternion read x y z w on snow, 2 % / 1 deg
+    priors), scored 0.03 and passed for the right reading: now its similarity is spread over at least ``MIN_COVER``
+    of the best-covered reading's pixels; readings that cover as much are scored as before."""
+    from hgsloc_plugin.check import MIN_COVER, covered_cost
+
+    sums = np.array([[11195.4, 27723.0], [15.5, 16.0], [0.0, 0.0]])
+    cover = MIN_COVER * sums[:, 1].max()
+    c = covered_cost(sums, cover)
+    assert c[0] == pytest.approx(1 - 11195.4 / 27723.0) and c[1] > 0.99 and c[2] == 1.0

@@ -158,11 +158,15 @@ def test_transforms_json_reads_as_poses_and_intrinsics_and_writes_back(tmp_path)
     for g, t in pairs.items():
         dt, dr = gt[g].errors_to(tj[t])
         assert dt < 1e-5 and dr < 1e-5
-    with pytest.raises(ValueError, match="distortion"):
-        from_query_list(fox / "transforms.json")
+    # its k1 k2 p1 p2 are carried as an OPENCV distortion (the refiner undistorts the photo), unless the photos are
+    # declared undistorted already (fox's are)
+    lens = from_query_list(fox / "transforms.json")("images/0001.jpg", 270, 480)
+    assert lens.distortion.model == "OPENCV" and lens.distortion.coeffs == (0.0578421, -0.0805099, -0.000980296,
+                                                                            0.00015575)
     cam = json.loads((fox / "camera.json").read_text())
     got = from_query_list(fox / "transforms.json", allow_distortion=True)("images/0001.jpg", 270, 480)
     assert np.allclose([got.fx, got.fy, got.cx, got.cy], [cam["fx"], cam["fy"], cam["cx"], cam["cy"]])
+    assert got.distortion is None and got == lens.pinhole
     # written back: the same JSON, only the refined frames' transform_matrix changed
     name = next(iter(tj))
     moved = tj[name].perturbed_in_camera([0.0, 0.01, 0.0], [0.02, 0.0, 0.0])
@@ -175,9 +179,11 @@ def test_transforms_json_reads_as_poses_and_intrinsics_and_writes_back(tmp_path)
     back = read_poses(out)[name]
     assert back.errors_to(moved)[0] < 1e-9 and back.errors_to(moved)[1] < 1e-6
     # evaluate matches it to the ground truth by image name
+    # (its 17 frames without ground truth are named as not scored)
     p = hgsloc("evaluate", "--poses", fox / "transforms.json", "--gt", fox / "gt.txt", "--json")
     rep = json.loads(p.stdout)
     assert p.returncode == 0 and rep["n"] == 50 and rep["missing"] == 0 and rep["median_translation_cm"] < 1e-3
+    assert rep["without_ground_truth"] == 17 and "17 of the 67 estimates" in p.stderr
 
 
 @pytest.mark.slow

@@ -9,6 +9,7 @@ import pycolmap
 import pytest
 
 from hgsloc_plugin import Camera, GaussianScene, Pose
+from hgsloc_plugin.camera import Distortion, pose_cameras
 from hgsloc_plugin.pose import rotation_angle_deg, so3_exp
 
 from .conftest import random_scene
@@ -207,9 +208,20 @@ def test_camera_scaling_and_colmap_models():
     assert cam.with_max_side(160) == s
     pc = pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0])
     assert Camera.from_pycolmap(pc) == Camera(640, 480, 500.0, 500.0, 320.0, 240.0)
-    with pytest.raises(ValueError, match="distortion"):
-        Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01])
-    assert Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01], allow_distortion=True).fx == 500
+    # a model with distortion is carried (the refiner undistorts the photo), zero coefficients are a pinhole camera,
+    # allow_distortion (photos already undistorted) drops them
+    lens = Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01])
+    assert lens.distortion == Distortion("SIMPLE_RADIAL", (0.01,)) and lens.pinhole == Camera(640, 480, 500.0, 500.0,
+                                                                                              320.0, 240.0)
+    assert lens.colmap_params() == ("SIMPLE_RADIAL", [500.0, 320.0, 240.0, 0.01])
+    assert lens.scaled(0.5).distortion == lens.distortion
+    assert Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.0]).distortion is None
+    assert Camera.from_colmap("OPENCV", 640, 480, [500, 501, 320, 240, 0, 0, 0, 0]) == Camera(640, 480, 500, 501, 320,
+                                                                                             240)
+    plain = Camera.from_colmap("SIMPLE_RADIAL", 640, 480, [500.0, 320.0, 240.0, 0.01], allow_distortion=True)
+    assert plain.fx == 500 and plain.distortion is None
+    with pytest.raises(ValueError, match="lens distortion"):  # a rendering is a pinhole image
+        pose_cameras(lens, 1)
     # a parameter short or over is named with the model's parameter list (it was an IndexError or went unseen)
     with pytest.raises(ValueError, match=r"SIMPLE_PINHOLE takes 3 parameters \(f cx cy\), got 2"):
         Camera.from_colmap("SIMPLE_PINHOLE", 640, 480, [500.0, 320.0])

@@ -286,7 +286,7 @@ def test_cli_json_stdout_is_pure_and_strict(tiny_case, tmp_path):  # noqa: F811
 
 def test_cli_evaluate_names_unmatched_images(tiny_case, tmp_path):  # noqa: F811
     """Estimates of other images than the ground truth's are a user error, not a silent 0 % recall; a partial
-    match is evaluated (missing images count as failed) with both kinds of unmatched name on stderr."""
+    match is evaluated on the images both hold, with both kinds of unmatched name on stderr."""
     d = tiny_case
     gt = d / "gt.txt"
     lines = gt.read_text().splitlines()
@@ -301,9 +301,9 @@ def test_cli_evaluate_names_unmatched_images(tiny_case, tmp_path):  # noqa: F811
     p = _run_cli(["evaluate", "--poses", str(part), "--gt", str(gt), "--json"])
     assert p.returncode == 0, p.stderr
     rep = json.loads(p.stdout)
-    assert rep["n"] == 3 and rep["missing"] == 1 and rep["recall"]["1cm1deg"] == pytest.approx(2 / 3)
+    assert rep["n"] == 2 and rep["missing"] == 1 and rep["recall"]["1cm1deg"] == 1.0
     assert f"1 of the 3 images of {gt}" in p.stderr and lines[2].split()[0] in p.stderr
-    assert "1 estimates name no image" in p.stderr and "stray.png" in p.stderr
+    assert "1 of the 3 estimates" in p.stderr and "stray.png" in p.stderr
 
 
 @pytest.mark.slow
@@ -362,7 +362,7 @@ def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
     assert this_run.startswith("this run: refined") and "/ 1 queries" in this_run
     assert in_all.startswith("in all:") and "/ 3 queries" in in_all
     rep2 = json.loads((tmp_path / "o.txt.json").read_text())
-    assert rep2["resumed"] == {"done": 2, "of": 3, "retried": 1} and rep2["this_run"]["queries"] == 1
+    assert rep2["resumed"] == {"done": 2, "of": 3, "recomputed": 0, "retried": 1} and rep2["this_run"]["queries"] == 1
     assert rep2["totals"]["failed"] == 0 and not rep2["queries"][failed[0]].get("error")
     assert rep2["queries"][failed[0]]["renders"] > 0
     for n in rep["queries"]:

@@ -16,6 +16,7 @@ from ..evaluate import evaluate
 from ..fileio import atomic_write_bytes, write_json
 from ..noise import apply_protocol
 from ..refine import RefineConfig
+from ..refine.plan import median_depth
 from ..scene import GaussianScene
 from ..viz import comparison_figure, plot_costs, plot_errors, save_png
 from .queries import make_queries, query_poses
@@ -57,13 +58,13 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
     for spec in noise:
         tag = spec.replace(",", "_").replace(".", "p")
         rng = np.random.default_rng(seed + 7)
-        coarse = {n: apply_protocol(g, spec, rng) for n, g in gt.items()}
+        coarse = {n: apply_protocol(g, spec, rng, median_depth(scene, cam, g)) for n, g in gt.items()}
         coarse_path = out / f"coarse_{tag}.txt"
         _write_pose_file(coarse_path, coarse)
         refined_path = out / f"refined_{tag}.txt"
         start = time.perf_counter()
         rep = refine_pose_file(scene, coarse_path, out / "images", from_focal(cam.fx), refined_path, config=config,
-                               progress=progress, gt_variant="synthetic", settings={"noise": spec})
+                               progress=progress, gt_variant="synthetic", settings={"noise": spec}, restart=True)
         elapsed = time.perf_counter() - start  # the whole file: queries refined together overlap in time
         ev0 = evaluate(read_poses(coarse_path), gt)
         ev1 = evaluate(read_poses(refined_path), gt)
@@ -80,7 +81,7 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
         r0 = [ev0["errors"][n][1] for n in names]
         r1 = [ev1["errors"][n][1] for n in names]
         plot_errors(t0, t1, r0, r1, out / "figures" / f"errors_{tag}.png")
-        plot_costs(list(q.values()), out / "figures" / f"cost_{tag}.png")
+        plot_costs(list(q.values()), out / "figures" / f"cost_{tag}.png", names=list(q))
         n0 = names[0]
         comparison_figure(scene, cam, imgs[0], coarse[n0], read_poses(refined_path)[n0],
                           out / "figures" / f"compare_{tag}_{n0.replace('/', '_')}", background=config.background)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ..camera import Camera
 from ..costs import METRICS
-from ..image import check_size, load_image
+from ..image import check_size, load_image, undistort
 from ..kernels import RasterConfig
 from ..kernels.window import RADIUS as WINDOW_RADIUS
 from ..pose import Pose
@@ -66,7 +66,8 @@ class Refiner:
         Args:
             image: [H, W, 3] uint8 or float in [0, 1], torch [3, H, W], or a path (grey and RGBA too, composited
                 on ``RefineConfig.background``); its size must match ``camera``.
-            camera: the query's pinhole intrinsics at the image's size.
+            camera: the query's intrinsics at the image's size; a camera with lens distortion
+                (``Camera.distortion``) has its photo undistorted to a pinhole camera first (``image.undistort``).
             coarse_pose: world-to-camera prior.
             prior: this query's trust region and expected prior error (:class:`QueryPrior`); or its fields as
                 keywords (``max_shift=0.1, prior_error_deg=1.0``, ...). Each overrides ``RefineConfig``'s.
@@ -84,6 +85,7 @@ class Refiner:
         prior = _query_prior(prior, settings)
         img = load_image(image, name=name or "image", background=cfg.background)
         img = check_size(img, camera, cfg.resize_query, name or "image")
+        img, camera = undistort(img, camera)  # a photo through a lens with distortion: to its pinhole camera
 
         plan = make_plan(cfg, self.scene, camera, coarse_pose, prior)
         renderer = self._working_set(plan)

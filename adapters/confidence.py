@@ -15,7 +15,7 @@ from __future__ import annotations
 import bisect
 import math
 
-from hgsloc_plugin.prior import QueryPrior
+from hgsloc_plugin.core.prior import QueryPrior
 
 #: lower edges of the inlier-count bins
 INLIER_EDGES = (0, 1000, 1500, 2000, 2500, 3000, 3500, 4000)

@@ -12,7 +12,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from hgsloc_plugin.camera import _PARAMS, Camera
+from hgsloc_plugin.core.camera import COLMAP_PARAMS, Camera
 
 from .dialects import read_poses
 from .names import canonical_name
@@ -62,7 +62,7 @@ def parse_query_list(path, *, allow_distortion: bool = False) -> dict[str, Camer
         tok = line.split()
         if len(tok) < 5:
             raise ValueError(f"{path}:{i}: expected 'name MODEL width height params...', got {len(tok)} tokens")
-        if tok[1].upper() not in _PARAMS:
+        if tok[1].upper() not in COLMAP_PARAMS:
             raise ValueError(f"{path}:{i}: {tok[1]!r} is not a COLMAP camera model (expected 'name MODEL width "
                              "height params...', e.g. 'q.jpg SIMPLE_RADIAL 640 480 525 320 240 0'; a pose file "
                              "is no query list)")
@@ -116,7 +116,7 @@ def from_camera_json(path, data: dict | None = None, *, allow_distortion: bool =
         if model == "PINHOLE" or not coeffs:
             cam = Camera(w, h, *k)
         else:
-            single = _PARAMS.get(model, "").startswith("f ")
+            single = COLMAP_PARAMS.get(model, "").startswith("f ")
             cam = Camera.from_colmap(model, w, h, ([k[0], k[2], k[3]] if single else k) + coeffs,
                                      allow_distortion=allow_distortion)
     except (TypeError, ValueError) as exc:

@@ -17,8 +17,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hgsloc_plugin.fileio import atomic_write_bytes
-from hgsloc_plugin.pose import Pose
+from hgsloc_plugin.core.fileio import atomic_write_bytes
+from hgsloc_plugin.core.pose import Pose
 
 logger = logging.getLogger("hgsloc_plugin")
 IMAGE_EXT = (".png", ".jpg", ".jpeg")

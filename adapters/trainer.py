@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hgsloc_plugin.camera import Camera
-from hgsloc_plugin.pose import Pose, rotmat_to_qvec
+from hgsloc_plugin.core.camera import Camera
+from hgsloc_plugin.core.pose import Pose, rotmat_to_qvec
 
 from .posefile import PoseFile, Record
 

@@ -24,10 +24,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.fileio import atomic_write_bytes  # noqa: E402
-from hgsloc_plugin.noise import apply_protocol  # noqa: E402
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
+from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.core.fileio import atomic_write_bytes  # noqa: E402
+from hgsloc_plugin.evaluation.noise import apply_protocol  # noqa: E402
 
 HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
 CS_MODES = {"search only": hp.RefineConfig(polish=False), "search + polish": hp.RefineConfig.preset("search"),

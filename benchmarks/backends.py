@@ -33,8 +33,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.lod import psnr  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.render.lod import psnr  # noqa: E402
 
 PRIORS = {"snow": ((2, 1.0), (5, 2.0)), "lego": ((1, 1.0),)}  # (% of depth, or 0.025 units per 1, deg)
 
@@ -169,7 +169,7 @@ def main() -> None:
         lines = compare(*a.compare)
         print("\n".join(lines))
         if a.md:
-            from hgsloc_plugin.fileio import atomic_write_bytes
+            from hgsloc_plugin.core.fileio import atomic_write_bytes
 
             atomic_write_bytes(a.md, ("\n".join(lines) + "\n").encode())
     elif a.out:

@@ -44,7 +44,7 @@ from real_photos import DATA, localizer_errors, shaped_prior, worse_count, write
 from trust import data_case, donut_case, room_case  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 
 SIZES = ((1.0, 0.5), (5.0, 2.0), (15.0, 5.0), (30.0, 8.0), (40.0, 10.0), (60.0, 15.0))
 SHAPED = (("dfnet", "DFNet-shaped"), ("marepo", "Marepo-shaped"))

@@ -35,7 +35,7 @@ from real_photos import write_keeping_notes  # noqa: E402
 from throughput import case_priors, load  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.image import resize_image  # noqa: E402
+from hgsloc_plugin.core.image import resize_image  # noqa: E402
 from tests.reference.render_torch import window_map  # noqa: E402
 
 

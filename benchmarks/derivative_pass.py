@@ -31,8 +31,8 @@ from real_photos import write_keeping_notes  # noqa: E402
 from throughput import load  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.image import resize_image  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.core.image import resize_image  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
 
 HEADER = ("| case | Gaussians rendered | size | render (ms) | pass (ms): tiles / pixels + masks / pixels | "

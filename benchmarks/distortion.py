@@ -38,10 +38,10 @@ def main() -> None:
 
     import hgsloc_plugin as hp
     from hgsloc_plugin.adapters import read_poses
-    from hgsloc_plugin.fileio import atomic_write_bytes
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.core.fileio import atomic_write_bytes
+    from hgsloc_plugin.evaluation.noise import se3_noise
+    from hgsloc_plugin.evaluation.viz import save_png
     from hgsloc_plugin.refine.plan import median_depth
-    from hgsloc_plugin.viz import save_png
 
     snow = DATA / "snow"
     cj = json.loads((snow / "camera.json").read_text())

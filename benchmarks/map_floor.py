@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import load_dataset, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.render import Renderer  # noqa: E402
 from tests.reference.render_torch import window_map  # noqa: E402
 

@@ -64,10 +64,10 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     from throughput import stage_clock
 
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.queries import degrade, query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import densify, make_room_scene
-    from hgsloc_plugin.noise import apply_protocol
+    from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.evaluation.noise import apply_protocol
     from hgsloc_plugin.refine.plan import make_plan
 
     arch = hp.init()
@@ -119,9 +119,9 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
 def stages(k: int) -> str:
     """One Markdown row: a render's time split by kernel stage on the room densified ``k`` times."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
     from hgsloc_plugin.kernels.layout import Rec
     from hgsloc_plugin.refine.plan import make_plan
 

@@ -36,8 +36,8 @@ sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data"
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.image import load_image  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.core.image import load_image  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
 
 #: dataset -> (folder under ../shared/data, map file): snow has an imperfect map and a good one
@@ -103,7 +103,7 @@ def write_keeping_notes(path: Path, lines: list[str], section: str = "## Notes")
     """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping what the file already has from its
     first line starting with ``section`` (default: its ``## Notes``; ``"## "``: every level-2 section, for a
     benchmark whose own lines hold none): a benchmark regenerates its figures, not the discussion beside them."""
-    from hgsloc_plugin.fileio import atomic_write_bytes
+    from hgsloc_plugin.core.fileio import atomic_write_bytes
 
     old = path.read_text() if path.exists() else ""
     mark = "\n" + section
@@ -191,7 +191,7 @@ def main() -> None:
     for ds in args.datasets:
         lines += run(ds, args.heuristics, args.seeds)
     if args.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
+        from hgsloc_plugin.core.fileio import atomic_write_bytes
 
         atomic_write_bytes(Path(args.out), ("\n".join(lines) + "\n").encode())
 

@@ -32,11 +32,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from real_photos import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
-from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.image import resize_image  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
+from hgsloc_plugin.cli.demo.run import QUERY_CAMERA  # noqa: E402
+from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.core.image import resize_image  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.render import get_renderer  # noqa: E402
 
 MODES = {

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
 
 
 def timed(fn, repeats):

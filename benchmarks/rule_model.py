@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from throughput import load  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine import trust  # noqa: E402
 
 
@@ -85,7 +85,7 @@ def row(case: str, recs: list[tuple[np.ndarray, np.ndarray]]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["snow_sharp", "snow", "lego", "room"])
-    ap.add_argument("--noise", default="0,1,2,4,8", help="prior sizes, % of the median depth (degrees: half)")
+    ap.add_argument("--noise", default="0,1,2,4,8", help="prior sizes, %% of the median depth (degrees: half)")
     ap.add_argument("--out", type=Path, help="also write the table as Markdown here")
     args = ap.parse_args()
     noise = [float(x) for x in args.noise.split(",")]

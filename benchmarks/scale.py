@@ -39,8 +39,8 @@ from real_photos import write_keeping_notes  # noqa: E402
 from throughput import case_priors, load  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.backend import default_batch_size  # noqa: E402
-from hgsloc_plugin.batch import as_queries, run_batch  # noqa: E402
+from hgsloc_plugin.core.backend import default_batch_size  # noqa: E402
+from hgsloc_plugin.run.batch import as_queries, run_batch  # noqa: E402
 
 HEADER = ("| mode | start (s) | s / query | queries / s | speed | same poses |\n"
           "|---|---|---|---|---|---|")
@@ -150,7 +150,7 @@ def main() -> None:
     for workers in a.workers if ray else []:
         ray.init(num_cpus=max(1, workers * a.threads), include_dashboard=False, log_to_driver=False)
         try:
-            from hgsloc_plugin.distributed import worker_resources
+            from hgsloc_plugin.run.distributed import worker_resources
 
             res, worker_arch = worker_resources(ray.cluster_resources().get("GPU", 0), workers, a.threads)
             # ray_results through run_batch: each worker's own default batch size

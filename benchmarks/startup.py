@@ -10,7 +10,7 @@ difference. One untimed process first fills the offline cache, so every timed ro
 every run after a user's first does; with ``--cold`` each row starts from an empty offline cache instead (a
 user's first run: loading is then mostly compiling).
 Settings: ``memo off`` (``HGSLOC_TAICHI_MEMO=0``: Taichi's source-position formatting not memoised, the state
-before ``hgsloc_plugin/kernel_load.py``) and ``default``; both run the same kernels. ``--before DIR`` adds a
+before ``hgsloc_plugin/core/kernel_load.py``) and ``default``; both run the same kernels. ``--before DIR`` adds a
 setting that imports the package from another checkout (e.g. ``git worktree add DIR <commit>``, with
 ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to the checkout's top-level folders as the
 editable install maps them): the code before a change, measured in the same run. Rows alternate between the
@@ -40,10 +40,10 @@ def child() -> dict:
     t_import = time.perf_counter()
     hp.init()
     t_init = time.perf_counter()
-    from hgsloc_plugin.demo.queries import make_queries, query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.noise import apply_protocol
+    from hgsloc_plugin.cli.demo.queries import make_queries, query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.evaluation.noise import apply_protocol
 
     room = make_room_scene()
     cam = QUERY_CAMERA

@@ -24,7 +24,7 @@ time per query in render-times (machine-independent: the refinement's cost in si
 map and size), renders and derivative passes per query, the prior's and the returned median error (% depth or cm;
 degrees), queries made worse: all for one query at a time (``refine_many(batch_size=1)``; times: the mean of the
 rounds). Then the same queries in one lockstep batch (``--batch-size``, default the backend's:
-``hgsloc_plugin/lockstep.py``; after an untimed batch of the first ``--batch-size`` queries, as the sequential
+``hgsloc_plugin/run/lockstep.py``; after an untimed batch of the first ``--batch-size`` queries, as the sequential
 queries follow an untimed one): seconds per query, speed over sequential (each round's), device calls per query
 sequential -> batched (the host-device round trips: a batched launch counts once), Taichi kernel launches per query
 sequential -> batched (uploads and read-backs included: each costs the host tens of microseconds whatever the
@@ -61,21 +61,21 @@ from machine import StealClock  # noqa: E402
 from real_photos import load_dataset, localizer_errors, shaped_prior, worse_count, write_keeping_notes  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.backend import default_batch_size  # noqa: E402
-from hgsloc_plugin.batch import as_queries  # noqa: E402
+from hgsloc_plugin.core.backend import default_batch_size  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.kernels.config import CUDA_LAYOUT  # noqa: E402  (--layout cuda)
-from hgsloc_plugin.lockstep import Lockstep, refine_queries  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.config import PRESETS  # noqa: E402
 from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
+from hgsloc_plugin.run.batch import as_queries  # noqa: E402
+from hgsloc_plugin.run.lockstep import Lockstep, refine_queries  # noqa: E402
 
 
 def room_case(k: int, n: int = 3, scale: float = 1.0):
     """(camera, scene, [(name, truth, image, median depth)], background) of the room densified ``k`` times, ``n``
     photo-degraded queries of the undensified room at ``scale`` times the demo's 320x240."""
-    from hgsloc_plugin.demo.queries import degrade, query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
     from hgsloc_plugin.refine.plan import median_depth
 
     room, cam = make_room_scene(), QUERY_CAMERA.scaled(scale)

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from derivative_pass import compared_rows, median_ms, table_main  # noqa: E402
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.image import resize_image  # noqa: E402
+from hgsloc_plugin.core.image import resize_image  # noqa: E402
 from hgsloc_plugin.render import read_rows  # noqa: E402
 
 HEADER = ("| case | Gaussians rendered | size | entries: box / ellipse | render (ms): box / ellipse | "

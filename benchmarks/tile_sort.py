@@ -39,7 +39,7 @@ def child(case: str, repeats: int) -> dict:
     import taichi as ti
 
     import hgsloc_plugin as hp
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.evaluation.noise import se3_noise
     from hgsloc_plugin.refine.plan import make_plan
 
     throughput = importlib.import_module("throughput")  # after the package: it puts this checkout first on the path

@@ -15,7 +15,7 @@ published 7-Scenes hloc poses carry no counts, and nearly all of them are locali
 
 Views (errors in **cm-eq**: centre error x 200 / the view's median depth, so 1 cm-eq is the same image motion on
 every scene):
-- ``room``: ``SYNTHETIC_VIEWS`` random views of the demo room (``hgsloc_plugin.demo``);
+- ``room``: ``SYNTHETIC_VIEWS`` random views of the demo room (``hgsloc_plugin.cli.demo``);
 - ``stripes``: random views of the room's striped wall (periodic texture: a wrong minimum one stripe over);
 - ``donut``: random views of ``../shared/data/scenes/donut.ply`` (a small SH-0 object);
   the three rendered by the independent PyTorch reference (``tests/reference/render_torch.py``), then degraded as
@@ -244,7 +244,7 @@ class Views:
 
     def __init__(self, name: str):
         import hgsloc_plugin as hp
-        from hgsloc_plugin.demo.scene import make_room_scene
+        from hgsloc_plugin.cli.demo.scene import make_room_scene
 
         self.name, self.fixed, self.bg = name, None, (0.0, 0.0, 0.0)
         if name in ("room", "stripes"):
@@ -268,7 +268,7 @@ class Views:
 
     def _synthetic(self, k: int):
         import hgsloc_plugin as hp
-        from hgsloc_plugin.demo.queries import degrade
+        from hgsloc_plugin.cli.demo.queries import degrade
         from hgsloc_plugin.refine.plan import median_depth
         from tests.reference.render_torch import render_reference
 
@@ -283,7 +283,7 @@ class Views:
 def _random_view(name: str, rng: np.random.Generator):
     """A random true pose of a synthetic scene."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.scene import HALF
+    from hgsloc_plugin.cli.demo.scene import HALF
 
     if name == "donut":
         az, el, r = rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 0.9), rng.uniform(0.3, 0.38)
@@ -302,7 +302,7 @@ def _random_view(name: str, rng: np.random.Generator):
 def _dataset(name: str):
     """(scene, camera, [(true pose, image, median depth)], background) of a ../shared/data set."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.core.image import load_image
     from hgsloc_plugin.refine.plan import median_depth
 
     folder, ply = {"snow": ("snow", "snow.ply"), "snow_sharp": ("snow", "snow_sharp.ply"),
@@ -450,7 +450,7 @@ def report(rows: list[dict], scenes, localizers, args, title: str) -> None:
         lines += ["", f"Trial by trial against {args.compare}:", ""] + compare(before, rows, scenes)
     print("\n".join(lines))
     if args.out:
-        from hgsloc_plugin.fileio import atomic_write_bytes
+        from hgsloc_plugin.core.fileio import atomic_write_bytes
 
         atomic_write_bytes(Path(args.out), ("\n".join(lines) + "\n").encode())
 

@@ -58,10 +58,10 @@ from real_photos import DATA, load_dataset, localizer_errors, shaped_prior, writ
 
 import hgsloc_plugin as hp  # noqa: E402
 from hgsloc_plugin.adapters.confidence import inlier_trust  # noqa: E402
-from hgsloc_plugin.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.demo.run import QUERY_CAMERA  # noqa: E402
-from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
+from hgsloc_plugin.cli.demo.run import QUERY_CAMERA  # noqa: E402
+from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
 
 LEVELS = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0), (30.0, 10.0))

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from hgsloc_plugin import hloc_step as hgsloc_step
-from hgsloc_plugin.units import count_arg
+from hgsloc_plugin.core.units import count_arg
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
 

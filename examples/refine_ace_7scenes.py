@@ -21,11 +21,11 @@ from pathlib import Path
 
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.intrinsics import from_pgt
-from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
-from hgsloc_plugin.pipeline import refine_pose_file
+from hgsloc_plugin.core.units import count_arg, prior_error_overrides
+from hgsloc_plugin.evaluation.evaluate import evaluate, mean_over_scenes
 from hgsloc_plugin.refine import RefineConfig
 from hgsloc_plugin.refine.config import PRESET_HELP, PRESETS
-from hgsloc_plugin.units import count_arg, prior_error_overrides
+from hgsloc_plugin.run.pipeline import refine_pose_file
 
 SCENES = ["chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs"]
 NAMES = {"ace": "ACE", "glace": "GLACE", "marepo": "Marepo", "dfnet": "DFNet", "hloc": "HLoc"}

@@ -9,15 +9,15 @@ import os
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
-from .backend import current_arch, init  # noqa: E402
-from .camera import Camera  # noqa: E402
+from .core.backend import current_arch, init  # noqa: E402
+from .core.camera import Camera  # noqa: E402
+from .core.pose import Pose  # noqa: E402
+from .core.prior import QueryPrior  # noqa: E402
+from .core.scene import GaussianScene  # noqa: E402
 from .kernels import RasterConfig  # noqa: E402
-from .plugin import HGSLocPlugin  # noqa: E402
-from .pose import Pose  # noqa: E402
-from .prior import QueryPrior  # noqa: E402
 from .refine import RefineConfig, RefineResult  # noqa: E402
 from .render import Renderer, render, render_cost, render_full  # noqa: E402
-from .scene import GaussianScene  # noqa: E402
+from .run.plugin import HGSLocPlugin  # noqa: E402
 
 __all__ = [
     "Camera",

@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 from .adapters.intrinsics import from_query_list
-from .pipeline import refine_pose_file
+from .run.pipeline import refine_pose_file
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -55,8 +55,8 @@ def main(scene: Path, queries: Path, results: Path, image_dir: Path, output: Pat
 
 def build_parser() -> argparse.ArgumentParser:
     """The step's command line (hloc's flag style)."""
+    from .core.units import count_arg, positive_count_arg
     from .refine.config import PRESET_HELP
-    from .units import count_arg, positive_count_arg
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, required=True)
@@ -85,9 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2; failed queries are named on
     stderr, exit code 3 (every other result is written); an interrupt exits 130 (rerun to resume)."""
-    from .pipeline import read_report
+    from .core.units import prior_error_overrides
     from .refine import RefineConfig
-    from .units import prior_error_overrides
+    from .run.pipeline import read_report
 
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO)

@@ -3,7 +3,7 @@
 ``Rec``: the per-Gaussian record the projection kernel writes (``packed [B, N, Rec.SIZE]``) and both blend
 layouts read. ``Cam``: the per-pose camera record the projection writes (``cams [B, Cam.SIZE]``) and reads, and
 the derivative pass reads. ``Stat``: the per-pose photometric statistics the fused cost kernels accumulate
-(``stats [B, Stat.SIZE]``) and ``hgsloc_plugin.costs`` decodes. Kernels index with these names inside
+(``stats [B, Stat.SIZE]``) and ``hgsloc_plugin.core.costs`` decodes. Kernels index with these names inside
 ``ti.static`` code, so a field moves in one place only.
 """
 

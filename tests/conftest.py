@@ -56,9 +56,9 @@ def room_query(cam, pose_seed: int, noise_deg: float, noise_shift: float, noise_
     """The demo room, one of its query poses, that pose's rendering at ``cam`` and a prior ``noise_deg`` /
     ``noise_shift`` off it: (scene, true pose, image [H, W, 3], prior)."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.evaluation.noise import se3_noise
 
     scene = make_room_scene(density=density)
     gt = query_poses(1, seed=pose_seed)[0]

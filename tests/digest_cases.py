@@ -60,7 +60,7 @@ def _camera(d: Path):
 def _real_queries(name: str, limit: int):
     """(camera, [(image name, true pose, image [H, W, 3])]) of ``../shared/data/<name>`` (RGBA on white)."""
     import hgsloc_plugin as hp
-    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.core.image import load_image
 
     d = DATA / name
     out = []
@@ -74,7 +74,7 @@ def _real_queries(name: str, limit: int):
 
 def _priors(truths, rot_deg: float, shift_of_depth: float, seed: int, scene, cam):
     """Exact-magnitude priors: ``rot_deg`` degrees and ``shift_of_depth`` x the query's median depth."""
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.evaluation.noise import se3_noise
     from hgsloc_plugin.refine.plan import median_depth
 
     rng = np.random.default_rng(seed)
@@ -108,9 +108,9 @@ def _real(ply: str, folder: str, limit: int, rows, config=None, **per_query):
 
 def _room(config=None):
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.evaluation.noise import se3_noise
 
     scene = make_room_scene(density=0.35)
     cam = hp.Camera(160, 120, 140.0, 140.0, 80.0, 60.0)
@@ -133,7 +133,7 @@ def _pose_file():
     import tempfile
 
     import hgsloc_plugin as hp
-    from hgsloc_plugin.pipeline import refine_pose_file
+    from hgsloc_plugin.run.pipeline import refine_pose_file
 
     cam, qs = _real_queries("snow", 3)
     scene = hp.GaussianScene.from_ply(DATA / "snow" / "snow.ply")

@@ -10,7 +10,7 @@ import pytest
 from hgsloc_plugin import Pose
 from hgsloc_plugin.adapters import canonical_name, match_names, read_poses, resolve_image, write_poses
 from hgsloc_plugin.adapters.intrinsics import from_pgt, from_query_list, parse_query_list
-from hgsloc_plugin.evaluate import evaluate, mean_over_scenes
+from hgsloc_plugin.evaluation.evaluate import evaluate, mean_over_scenes
 
 from .conftest import shared_path
 
@@ -283,7 +283,7 @@ def test_intrinsics_sources(tmp_path):
 
 
 def test_cambridge_dialect_centre_and_round_trip(tmp_path):
-    from hgsloc_plugin.pose import so3_exp
+    from hgsloc_plugin.core.pose import so3_exp
 
     R = so3_exp([0.1, -0.2, 0.3])
     c = np.array([10.0, -5.0, 2.0])

@@ -14,9 +14,9 @@ import pytest
 
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
-from hgsloc_plugin.check import check_poses
-from hgsloc_plugin.noise import se3_noise
-from hgsloc_plugin.pose import so3_exp
+from hgsloc_plugin.cli.check import check_poses
+from hgsloc_plugin.core.pose import so3_exp
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.refine.plan import median_depth
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -163,8 +163,8 @@ def test_refine_stops_on_a_convention_error_unless_skipped(tmp_path):
 
 
 def test_white_background_is_read_from_cfg_args(tmp_path):
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.scene import resolve_scene
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.core.scene import resolve_scene
 
     run = tmp_path / "run"
     (run / "point_cloud" / "iteration_100").mkdir(parents=True)
@@ -180,7 +180,7 @@ def test_a_reading_that_renders_a_sliver_is_no_match():
     """A reading whose rendering covers 16 pixels, similar there (a quaternion read x y z w on snow, 2 % / 1 deg
     priors), scored 0.03 and passed for the right reading: now its similarity is spread over at least ``MIN_COVER``
     of the best-covered reading's pixels; readings that cover as much are scored as before."""
-    from hgsloc_plugin.check import MIN_COVER, covered_cost
+    from hgsloc_plugin.cli.check import MIN_COVER, covered_cost
 
     sums = np.array([[11195.4, 27723.0], [15.5, 16.0], [0.0, 0.0]])
     cover = MIN_COVER * sums[:, 1].max()

@@ -14,11 +14,11 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.confidence import MEDIAN_DEG, Q99_DEG, REGION_MARGIN
-from hgsloc_plugin.cli import main
-from hgsloc_plugin.demo.queries import query_poses
-from hgsloc_plugin.demo.scene import make_room_scene
-from hgsloc_plugin.noise import parse_protocol, qt_noise, qt_noise_raw, se3_noise
-from hgsloc_plugin.viz import save_png
+from hgsloc_plugin.cli.demo.queries import query_poses
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.cli.parser import main
+from hgsloc_plugin.evaluation.noise import parse_protocol, qt_noise, qt_noise_raw, se3_noise
+from hgsloc_plugin.evaluation.viz import save_png
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +187,7 @@ def test_hloc_step(tiny_case, tmp_path):
 
 @pytest.mark.slow
 def test_demo_runs_and_improves(tmp_path):
-    from hgsloc_plugin.demo.run import run_demo
+    from hgsloc_plugin.cli.demo.run import run_demo
 
     t0 = time.perf_counter()
     s = run_demo(tmp_path / "demo", queries=3, noise=("3cm,1deg",), preset="fast", progress=False)
@@ -277,7 +277,7 @@ def test_pose_file_limit_must_be_a_count(tiny_case, tmp_path):
     """refine_pose_file(limit=-2) would slice off the last two queries and refine the rest: refused, nothing
     written."""
     from hgsloc_plugin.adapters.intrinsics import from_focal
-    from hgsloc_plugin.pipeline import refine_pose_file
+    from hgsloc_plugin.run.pipeline import refine_pose_file
 
     d = tiny_case
     with pytest.raises(ValueError, match="limit must be >= 0"):

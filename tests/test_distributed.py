@@ -13,11 +13,11 @@ ray = pytest.importorskip("ray", reason='Ray not installed (pip install "hgsloc-
 pytestmark = pytest.mark.slow  # worker processes start Ray and Taichi: seconds each
 
 import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.batch import Query  # noqa: E402
-from hgsloc_plugin.demo.queries import query_poses  # noqa: E402
-from hgsloc_plugin.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.distributed import ray_results, worker_resources  # noqa: E402
-from hgsloc_plugin.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.cli.demo.queries import query_poses  # noqa: E402
+from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
+from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
+from hgsloc_plugin.run.batch import Query  # noqa: E402
+from hgsloc_plugin.run.distributed import ray_results, worker_resources  # noqa: E402
 
 CFG = hp.RefineConfig.preset("fast", max_expansions=8)
 
@@ -141,8 +141,8 @@ def test_killed_worker_still_yields_every_query_once(local_ray, case):
 
 def test_pipeline_with_workers_and_resume(local_ray, case, tmp_path):
     from hgsloc_plugin.adapters.intrinsics import from_focal
-    from hgsloc_plugin.pipeline import refine_pose_file
-    from hgsloc_plugin.viz import save_png
+    from hgsloc_plugin.evaluation.viz import save_png
+    from hgsloc_plugin.run.pipeline import refine_pose_file
 
     scene, tasks = case
     (tmp_path / "img").mkdir()

@@ -1,4 +1,4 @@
-"""Kernel loading (``hgsloc_plugin/kernel_load.py``): the memoised source positions change no compile error and
+"""Kernel loading (``hgsloc_plugin/core/kernel_load.py``): the memoised source positions change no compile error and
 are reused across the repeated visits of unrolled loops; the CPU backend compiles without Taichi's
 control-flow-graph pass (``backend.py``).
 
@@ -18,7 +18,7 @@ import hgsloc_plugin as hp
 BROKEN = textwrap.dedent("""
     import taichi as ti
     import hgsloc_plugin as hp
-    from hgsloc_plugin import kernel_load
+    from hgsloc_plugin.core import kernel_load
 
     hp.init("cpu")
 

@@ -1,5 +1,5 @@
 """Many queries per launch: stacked query statistics in the cost and derivative kernels, and lockstep batches
-(``hgsloc_plugin/lockstep.py``) returning the poses of one query at a time, on real photos first."""
+(``hgsloc_plugin/run/lockstep.py``) returning the poses of one query at a time, on real photos first."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.batch import as_queries
-from hgsloc_plugin.image import resize_image
+from hgsloc_plugin.core.image import resize_image
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.kernels.config import CUDA_LAYOUT
-from hgsloc_plugin.lockstep import Lockstep, refine_queries
-from hgsloc_plugin.noise import se3_noise
 from hgsloc_plugin.render import get_renderer
+from hgsloc_plugin.run.batch import as_queries
+from hgsloc_plugin.run.lockstep import Lockstep, refine_queries
 
 from .conftest import random_scene, room_query
 from .test_trust import SNOW, _snow
@@ -73,7 +73,7 @@ def test_query_slots_copy_each_query_once_and_recycle_the_least_recent():
     """A lockstep's query slots (one device array per image size): each query's statistics are copied into a slot
     once and stay there while used; when the slots are full the least recently used query not in the group gives
     way; a launch against the slots scores every pose as a launch of its own query does, bit for bit."""
-    from hgsloc_plugin.lockstep import _QuerySlots
+    from hgsloc_plugin.run.lockstep import _QuerySlots
 
     scene, cam, images, poses = _stack_case()
     r = get_renderer(scene)
@@ -278,7 +278,9 @@ def test_working_sets_share_launches_through_their_union():
     assert [r.pose for _, r in sorted(pairs, key=lambda qr: qr[0].index)] == [r.pose for r in one]
     with pytest.raises(ValueError, match="union_limit"):
         Lockstep(3, union_limit=0.5)
-    assert Lockstep(3).union_limit == hp.backend.DEFAULT_UNION_LIMIT[hp.backend.current_arch()]
+    from hgsloc_plugin.core import backend
+
+    assert Lockstep(3).union_limit == backend.DEFAULT_UNION_LIMIT[backend.current_arch()]
 
 
 def test_queries_of_other_intrinsics_share_launches():

@@ -1,4 +1,4 @@
-"""Coarse level of detail (hgsloc_plugin/lod.py): the merge rule, its fidelity, and its use by the coarse levels."""
+"""Coarse level of detail (hgsloc_plugin/render/lod.py): the merge rule, its fidelity, its use by the coarse levels."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.demo.queries import degrade, query_poses
-from hgsloc_plugin.demo.scene import densify, make_room_scene
-from hgsloc_plugin.lod import coarse_lod, merge_cells, psnr
-from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.render import get_renderer
+from hgsloc_plugin.render.lod import coarse_lod, merge_cells, psnr
 
 
 def _arrays(means, var, opac, sh=None):
@@ -100,7 +100,7 @@ def test_refine_with_coarse_lod_scores_fine_levels_on_the_exact_map():
     r0 = hp.HGSLocPlugin(scene, cfg.replace(coarse_lod_pixels=None)).refine(img, cam, prior)
     assert r.cost_initial == r0.cost_initial  # scored before the levels, on the exact map
     # the judged cost is the exact map's at the returned search pose
-    from hgsloc_plugin.image import resize_image
+    from hgsloc_plugin.core.image import resize_image
     from hgsloc_plugin.refine.plan import make_plan
 
     plan = make_plan(cfg, scene, cam, prior, hp.QueryPrior())

@@ -49,7 +49,7 @@ def test_a_resume_of_other_inputs_is_refused_and_changed_queries_are_recomputed(
     other = hgsloc(*[a if a != "fast" else "default" for a in refine_args(d, out)])
     assert other.returncode == 2 and "refinement settings" in other.stderr and "--restart" in other.stderr
     assert len([ln for ln in other.stderr.splitlines() if ln.startswith("hgsloc")]) == 1, other.stderr
-    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
 
     make_room_scene(density=0.3).to_ply(tmp_path / "other.ply")
     args = refine_args(d, out)
@@ -93,7 +93,7 @@ def test_a_resume_of_other_inputs_is_refused_and_changed_queries_are_recomputed(
 
 INTERRUPT_AFTER_FIRST = """
 import os, signal, sys
-import hgsloc_plugin.pipeline as pipeline
+import hgsloc_plugin.run.pipeline as pipeline
 from hgsloc_plugin.cli import main
 real = pipeline.run_batch
 def run_batch(*args, on_result, **kw):
@@ -230,9 +230,9 @@ def test_intrinsics_from_a_camera_json_and_rescaling_said_once(tmp_path, caplog)
 
 
 def test_first_run_says_the_kernels_compile(tmp_path, monkeypatch, caplog):
-    from hgsloc_plugin import backend
+    from hgsloc_plugin.core import backend
 
-    code = ("import logging; logging.basicConfig(); from hgsloc_plugin import backend; "
+    code = ("import logging; logging.basicConfig(); from hgsloc_plugin.core import backend; "
             "backend._compile_notice('cpu', 3)")
     env = {**__import__("os").environ, "HGSLOC_CACHE_DIR": str(tmp_path)}
     first = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
@@ -250,9 +250,9 @@ def test_figures_are_labelled_and_fit_portrait_images(tmp_path):
 
     matplotlib.use("Agg")
     import hgsloc_plugin as hp
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.viz import comparison_panels, cost_figure
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.evaluation.viz import comparison_panels, cost_figure
 
     scene = make_room_scene(density=0.2)
     cam = hp.Camera.from_fov(60, 80, 50.0)  # portrait

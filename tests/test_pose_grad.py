@@ -23,10 +23,10 @@ import pytest
 import torch
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.backend import current_arch
-from hgsloc_plugin.costs import cost_from_window
-from hgsloc_plugin.demo.queries import degrade, query_poses
-from hgsloc_plugin.demo.scene import make_room_scene
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.core.backend import current_arch
+from hgsloc_plugin.core.costs import cost_from_window
 from hgsloc_plugin.refine.plan import median_depth
 from hgsloc_plugin.refine.polish import FINAL, polish, step_pixels
 from hgsloc_plugin.render import get_renderer

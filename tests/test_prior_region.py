@@ -24,9 +24,9 @@ from hgsloc_plugin.adapters.confidence import (
     inlier_region,
     inlier_trust,
 )
-from hgsloc_plugin.pipeline import refine_pose_file
+from hgsloc_plugin.evaluation.viz import save_png
 from hgsloc_plugin.refine.plan import median_depth
-from hgsloc_plugin.viz import save_png
+from hgsloc_plugin.run.pipeline import refine_pose_file
 
 from .conftest import FakeScorer, room_query
 

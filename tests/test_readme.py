@@ -39,7 +39,7 @@ def test_readme_is_a_guide_not_a_notebook():
 
 def test_every_readme_command_parses():
     from hgsloc_plugin import hloc_step
-    from hgsloc_plugin.cli import build_parser
+    from hgsloc_plugin.cli.parser import build_parser
 
     seen = set()
     for argv in commands():

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.demo.queries import query_poses
-from hgsloc_plugin.demo.scene import make_room_scene
-from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.cli.demo.queries import query_poses
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.refine.search import LatticeSpace, PaperSpace, best_first
 
 
@@ -244,7 +244,7 @@ def test_config_presets_and_validation():
 
 @pytest.mark.parametrize("metric", ["cs", "sad", "psnr", "ssim", "ncc", "affine"])
 def test_every_heuristic_ranks_the_true_pose_first(room, metric):
-    from hgsloc_plugin.demo.queries import degrade
+    from hgsloc_plugin.cli.demo.queries import degrade
     from hgsloc_plugin.refine.scorer import Scorer
     from hgsloc_plugin.render import get_renderer
 
@@ -292,7 +292,7 @@ def test_masked_cost_ignores_uncovered_pixels():
 
 
 def test_backend_arch_validation(monkeypatch):
-    from hgsloc_plugin import backend
+    from hgsloc_plugin.core import backend
 
     with pytest.raises(ValueError, match="arch"):
         backend.init("tpu")
@@ -323,10 +323,10 @@ def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
     its 32 px trust region) is refined to the truth by the wide search (its lattice levels at ``wide_max_side``,
     then the polish from that size up); a query the gradient route (and the search checking its far travel) already
     answers pays nothing."""
-    from hgsloc_plugin.demo.queries import degrade, query_poses
-    from hgsloc_plugin.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.demo.scene import make_room_scene
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
+    from hgsloc_plugin.evaluation.noise import se3_noise
 
     scene, cam = make_room_scene(), QUERY_CAMERA
     gts = query_poses(2, seed=1)

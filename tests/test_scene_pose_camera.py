@@ -9,8 +9,8 @@ import pycolmap
 import pytest
 
 from hgsloc_plugin import Camera, GaussianScene, Pose
-from hgsloc_plugin.camera import Distortion, pose_cameras
-from hgsloc_plugin.pose import rotation_angle_deg, so3_exp
+from hgsloc_plugin.core.camera import Distortion, pose_cameras
+from hgsloc_plugin.core.pose import rotation_angle_deg, so3_exp
 
 from .conftest import random_scene
 
@@ -158,7 +158,7 @@ def test_pose_rotation_is_computed_once_and_handed_out_as_a_copy():
     out changes neither the pose nor what it computes; a pickled pose (Ray sends them) equals the original."""
     import pickle
 
-    from hgsloc_plugin.pose import qvec_to_rotmat
+    from hgsloc_plugin.core.pose import qvec_to_rotmat
 
     p = Pose([0.9, 0.1, -0.3, 0.2], [0.5, -1.0, 2.0])
     R = p.R
@@ -171,7 +171,7 @@ def test_pose_rotation_is_computed_once_and_handed_out_as_a_copy():
 
 
 def test_one_quaternion_rotates_as_the_batch():
-    from hgsloc_plugin.pose import qvec_to_rotmat, qvecs_to_rotmats
+    from hgsloc_plugin.core.pose import qvec_to_rotmat, qvecs_to_rotmats
 
     q = np.random.default_rng(3).normal(size=(200, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -238,7 +238,7 @@ def test_resize_matches_torch_antialiased_bilinear(src, dst):
     import torch
     import torch.nn.functional as F
 
-    from hgsloc_plugin.image import resize_image
+    from hgsloc_plugin.core.image import resize_image
 
     img = np.random.default_rng(sum(src)).random(src + (3,)).astype(np.float32)
     out = resize_image(img, dst[1], dst[0])
@@ -259,7 +259,7 @@ def test_package_and_query_loading_do_not_import_torch(tmp_path):
 
     Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "q.png")
     code = ("import sys, hgsloc_plugin as hp\n"
-            "from hgsloc_plugin.image import load_image, resize_image\n"
+            "from hgsloc_plugin.core.image import load_image, resize_image\n"
             f"a = resize_image(load_image({str(tmp_path / 'q.png')!r}), 20, 15)\n"
             "print(a.shape, 'torch' in sys.modules)\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
@@ -273,7 +273,7 @@ def test_query_arrays_in_every_layout_a_file_has(tmp_path):
     import torch
     from PIL import Image
 
-    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.core.image import load_image
 
     rng = np.random.default_rng(0)
     rgba = rng.integers(0, 256, size=(6, 5, 4), dtype=np.uint8)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.costs import METRICS
+from hgsloc_plugin.core.costs import METRICS
 from hgsloc_plugin.render import RendererLike, get_renderer
-from hgsloc_plugin.working_set import WorkingSet
+from hgsloc_plugin.render.working_set import WorkingSet
 
 from .conftest import random_scene, room_query
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.demo.queries import degrade
+from hgsloc_plugin.cli.demo.queries import degrade
 from hgsloc_plugin.render import get_renderer, read_rows
 
 from .conftest import random_scene, room_query

@@ -15,9 +15,9 @@ import pytest
 import hgsloc_plugin as hp
 from hgsloc_plugin.adapters import read_poses
 from hgsloc_plugin.adapters.confidence import inlier_prior_error, inlier_trust
-from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.core.units import parse_angle, parse_length
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
-from hgsloc_plugin.units import parse_angle, parse_length
 
 from .conftest import FakeScorer, room_query, shared_path
 from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
@@ -104,7 +104,7 @@ def test_user_trust_region_bounds_the_search():
 def _snow(ply: str = "snow.ply"):
     import json as _json
 
-    from hgsloc_plugin.image import load_image
+    from hgsloc_plugin.core.image import load_image
     from hgsloc_plugin.refine.plan import median_depth
 
     cj = _json.loads((SNOW / "camera.json").read_text())
@@ -464,7 +464,7 @@ def test_striped_wall_prior_is_not_carried_one_stripe_over():
     striped wall. The gradient route travels beyond a window's reach and stops one stripe over (11.4 cm / 2.3 deg,
     accepted until 2026-12-05); the search from the prior, run as a second hypothesis, finds the true stripe at a
     lower cost, so the returned pose is within 1 cm / 0.5 deg of the truth."""
-    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
 
     case = shared_path("cases", "room_stripes")
     gt = read_poses(case / "gt.txt")["query.png"]

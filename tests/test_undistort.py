@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.image import undistort
+from hgsloc_plugin.core.image import undistort
 
 from .conftest import shared_path
 
@@ -77,8 +77,8 @@ def test_a_pinhole_rendering_distorted_and_undistorted_comes_back():
     import torch.nn.functional as F
     from kornia.geometry.calibration import undistort_points
 
-    from hgsloc_plugin.demo.queries import query_poses
-    from hgsloc_plugin.demo.scene import make_room_scene
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.scene import make_room_scene
 
     scene = make_room_scene(density=0.3)
     pin = hp.Camera.from_fov(200, 150, 60.0)
@@ -112,9 +112,9 @@ def test_a_distorted_real_photo_refines_with_no_flag(tmp_path):
     from PIL import Image
 
     from hgsloc_plugin.adapters import read_poses
-    from hgsloc_plugin.noise import se3_noise
+    from hgsloc_plugin.evaluation.noise import se3_noise
+    from hgsloc_plugin.evaluation.viz import save_png
     from hgsloc_plugin.refine.plan import median_depth
-    from hgsloc_plugin.viz import save_png
 
     snow = shared_path("snow")
     cj = json.loads((snow / "camera.json").read_text())

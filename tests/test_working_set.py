@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.demo.queries import degrade, query_poses
-from hgsloc_plugin.demo.scene import densify, make_room_scene
-from hgsloc_plugin.image import resize_image
-from hgsloc_plugin.noise import se3_noise
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+from hgsloc_plugin.core.image import resize_image
+from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.refine.scorer import Scorer
 from hgsloc_plugin.render import get_renderer
 from hgsloc_plugin.render.buffers import Pool
@@ -114,7 +114,7 @@ def test_refine_with_and_without_working_set_identical():
 def test_following_working_set_equals_whole_map_and_reselects():
     """WorkingSet: batches that wander beyond its region are re-selected (and a batch too spread for one region
     is rendered from the whole map); every cost, image and pose derivative equals the whole map's bit for bit."""
-    from hgsloc_plugin.working_set import WorkingSet, mean_pose
+    from hgsloc_plugin.render.working_set import WorkingSet, mean_pose
 
     scene = densify(make_room_scene(), 2)
     full = get_renderer(scene)

@@ -6,8 +6,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from ..costs import METRICS as _COSTS
-from ..costs import SEARCH_METRICS as METRICS
+from ..core.costs import METRICS as _COSTS
+from ..core.costs import SEARCH_METRICS as METRICS
 
 
 @dataclass(frozen=True, kw_only=True)

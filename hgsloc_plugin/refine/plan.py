@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera
-from ..pose import Pose, rotation_angle_deg
-from ..prior import QueryPrior
-from ..scene import GaussianScene
+from ..core.camera import Camera
+from ..core.pose import Pose, rotation_angle_deg
+from ..core.prior import QueryPrior
+from ..core.scene import GaussianScene
 from .config import RefineConfig
 
 

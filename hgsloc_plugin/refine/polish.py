@@ -43,9 +43,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera
-from ..costs import cost_from_window
-from ..pose import Pose
+from ..core.camera import Camera
+from ..core.costs import cost_from_window
+from ..core.pose import Pose
 from ..render import RendererLike
 
 LAMBDA0 = 1e-3

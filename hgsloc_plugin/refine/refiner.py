@@ -12,16 +12,16 @@ import math
 import time
 from pathlib import Path
 
-from ..camera import Camera
-from ..costs import METRICS
-from ..image import check_size, load_image, undistort
+from ..core.camera import Camera
+from ..core.costs import METRICS
+from ..core.image import check_size, load_image, undistort
+from ..core.pose import Pose
+from ..core.prior import QueryPrior
+from ..core.scene import GaussianScene
 from ..kernels import RasterConfig
 from ..kernels.window import RADIUS as WINDOW_RADIUS
-from ..pose import Pose
-from ..prior import QueryPrior
 from ..render import RendererLike, get_renderer
-from ..scene import GaussianScene
-from ..working_set import WorkingSet
+from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan, make_plan
 from .result import RefineResult

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..pose import Pose
+from ..core.pose import Pose
 from .polish import PolishStats
 from .search import LevelStats
 from .trust import Assessment

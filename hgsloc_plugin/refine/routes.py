@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import Camera
-from ..lod import coarse_lod
-from ..pose import Pose
+from ..core.camera import Camera
+from ..core.pose import Pose
 from ..render import RendererLike
-from ..working_set import WorkingSet
+from ..render.lod import coarse_lod
+from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan
 from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, PolishStats, polish

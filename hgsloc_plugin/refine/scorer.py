@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
-from ..costs import METRICS, cost_from_stats, cost_from_window
-from ..image import resize_image
-from ..pose import Pose
+from ..core.camera import Camera
+from ..core.costs import METRICS, cost_from_stats, cost_from_window
+from ..core.image import resize_image
+from ..core.pose import Pose
 from ..render import RendererLike
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..pose import Pose, rotmat_to_qvec, so3_exp
+from ..core.pose import Pose, rotmat_to_qvec, so3_exp
 
 
 @dataclass

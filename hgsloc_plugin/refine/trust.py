@@ -28,11 +28,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..pose import Pose, rotation_angle_deg
+from ..core.pose import Pose, rotation_angle_deg
 from .uncertainty import BANDS, fuse_with_prior, pose_uncertainty, prior_distance, sigmas, within_tolerance
 
 if TYPE_CHECKING:
-    from ..camera import Camera
+    from ..core.camera import Camera
     from .plan import Plan
     from .polish import PolishStats
     from .routes import Candidate

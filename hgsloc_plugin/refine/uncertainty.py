@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ..pose import Pose
+from ..core.pose import Pose
 
 #: per-axis standard deviation of a prior, in units of its expected (median) error
 PRIOR_SPREAD = 1.3

@@ -6,10 +6,10 @@ import weakref
 
 import numpy as np
 
-from ..camera import Camera
-from ..costs import cost_from_stats
+from ..core.camera import Camera
+from ..core.costs import cost_from_stats
+from ..core.scene import GaussianScene
 from ..kernels import RasterConfig
-from ..scene import GaussianScene
 from .prepare import as_pose_list
 from .renderer import Renderer
 

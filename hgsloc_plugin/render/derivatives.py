@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
-from ..camera import Camera
-from ..costs import cost_from_window
+from ..core.camera import Camera
+from ..core.costs import cost_from_window
+from ..core.pose import Pose
 from ..kernels import window, window_grad
 from ..kernels.launch import launcher
 from ..kernels.pose_grad import NXI, derivative_images_kernel
-from ..pose import Pose
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 
 

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from ..core.pose import Pose, qvecs_to_rotmats
+from ..core.scene import GaussianScene
 from ..kernels.launch import empty
 from ..kernels.launch import upload as upload_into
-from ..pose import Pose, qvecs_to_rotmats
-from ..scene import GaussianScene
 
 
 def covariances_3d(quats: np.ndarray, scales: np.ndarray) -> np.ndarray:

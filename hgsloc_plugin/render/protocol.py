@@ -7,16 +7,16 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..camera import Camera
+from ..core.camera import Camera
+from ..core.pose import Pose
 from ..kernels import RasterConfig
-from ..pose import Pose
 
 
 @runtime_checkable
 class RendererLike(Protocol):
     """A scene's Gaussians, rendered and scored in batches of world-to-camera poses.
 
-    Implemented by :class:`~hgsloc_plugin.render.Renderer` and :class:`~hgsloc_plugin.working_set.WorkingSet`;
+    Implemented by :class:`~hgsloc_plugin.render.Renderer` and :class:`~hgsloc_plugin.render.working_set.WorkingSet`;
     the scorer, the polish, the working set, the level of detail and ``hgsloc check`` use only these.
     """
 

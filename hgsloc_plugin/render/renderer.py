@@ -13,8 +13,10 @@ from collections.abc import Sequence
 import numpy as np
 import taichi as ti
 
-from ..backend import current_arch
-from ..camera import Camera, pose_cameras, size_camera
+from ..core.backend import current_arch
+from ..core.camera import Camera, pose_cameras, size_camera
+from ..core.pose import Pose
+from ..core.scene import GaussianScene
 from ..kernels import RasterConfig, cull, splat, window
 from ..kernels.blend import cost_kernel, image_func, image_kernel, reduce_kernel
 from ..kernels.footprint import uses_ellipse_tiles
@@ -23,8 +25,6 @@ from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
 from ..kernels.tile_sort import bin_parallel, tile_sort_kernel
-from ..pose import Pose
-from ..scene import GaussianScene
 from . import derivatives
 from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, blend_mode, read_rows, sort_mode
 from .prepare import DeviceGaussians, upload

@@ -8,17 +8,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters.dialects import read_poses
-from ..adapters.intrinsics import from_focal
-from ..adapters.posefile import format_pose_tokens
-from ..camera import Camera
-from ..evaluate import evaluate
-from ..fileio import atomic_write_bytes, write_json
-from ..noise import apply_protocol
-from ..refine import RefineConfig
-from ..refine.plan import median_depth
-from ..scene import GaussianScene
-from ..viz import comparison_figure, plot_costs, plot_errors, save_png
+from ...adapters.dialects import read_poses
+from ...adapters.intrinsics import from_focal
+from ...adapters.posefile import format_pose_tokens
+from ...core.camera import Camera
+from ...core.fileio import atomic_write_bytes, write_json
+from ...core.scene import GaussianScene
+from ...evaluation.evaluate import evaluate
+from ...evaluation.noise import apply_protocol
+from ...evaluation.viz import comparison_figure, plot_costs, plot_errors, save_png
+from ...refine import RefineConfig
+from ...refine.plan import median_depth
 from .queries import make_queries, query_poses
 from .scene import make_room_scene
 
@@ -39,7 +39,7 @@ def run_demo(out: Path, queries: int = 6, noise=DEFAULT_NOISE, preset: str = "de
     Returns the summary dict (also written to ``out/summary.json``; per noise level, ``seconds_per_query`` is the
     refinement's wall time over its queries, which a lockstep batch refines together); prints nothing.
     """
-    from ..pipeline import refine_pose_file
+    from ...run.pipeline import refine_pose_file
 
     out = Path(out)
     (out / "images" / "seq-01").mkdir(parents=True, exist_ok=True)

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .fileio import atomic_write_bytes
-from .pose import Pose
-from .render import render
-from .scene import GaussianScene
+from ..core.camera import Camera
+from ..core.fileio import atomic_write_bytes
+from ..core.pose import Pose
+from ..core.scene import GaussianScene
+from ..render import render
 
 
 def diagonal_split(rendering: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -51,7 +51,7 @@ def comparison_figure(scene: GaussianScene, camera: Camera, query: np.ndarray, c
 def comparison_panels(scene: GaussianScene, camera: Camera, query: np.ndarray, coarse: Pose, refined: Pose,
                       background=(0.0, 0.0, 0.0), max_side: int = 320):
     """The matplotlib figure of :func:`comparison_figure` (not saved, not closed)."""
-    from .image import resize_image
+    from ..core.image import resize_image
 
     cam = camera.with_max_side(max_side)
     q = resize_image(query.astype(np.float32), cam.width, cam.height)

@@ -1,8 +1,8 @@
 """The one batch runner: refine many queries in this process or on Ray, with progress and failure records.
 
-Every multi-query path (``HGSLocPlugin.refine_many``, pose files through :mod:`hgsloc_plugin.pipeline`, the
+Every multi-query path (``HGSLocPlugin.refine_many``, pose files through :mod:`hgsloc_plugin.run.pipeline`, the
 CLI, the HLoc step) comes here. In this process (and in each Ray worker) ``batch_size`` queries advance together,
-their renders sharing launches (:mod:`hgsloc_plugin.lockstep`; the same poses as one at a time). One failed query
+their renders sharing launches (:mod:`hgsloc_plugin.run.lockstep`; the same poses as one at a time). One failed query
 never stops the batch: it comes back as a failed :class:`~hgsloc_plugin.refine.RefineResult` naming its error.
 """
 
@@ -12,9 +12,9 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
+from ..core.prior import QueryPrior
+from ..refine import Refiner, RefineResult
 from .lockstep import refine_queries
-from .prior import QueryPrior
-from .refine import Refiner, RefineResult
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -70,7 +70,7 @@ def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, r
         workers / ray_address: N local Ray worker processes, or an existing cluster ("auto", "ray://...");
             by default everything runs in this process. Results are identical either way.
         batch_size: queries advanced together, their renders in shared launches (``lockstep.py``; each Ray
-            worker too); 1: one query at a time; None: :func:`~hgsloc_plugin.backend.default_batch_size` (on
+            worker too); 1: one query at a time; None: :func:`~hgsloc_plugin.core.backend.default_batch_size` (on
             Ray, each worker's backend's).
             The poses are the same for every batch size.
         on_result: called as ``on_result(query, result)`` as each query finishes (in any order).
@@ -95,7 +95,7 @@ def run_batch(refiner: Refiner, queries: Sequence[Query], *, workers: int = 0, r
 def check_batch_size(batch_size: int | None) -> int:
     """``batch_size``, or the backend's default when None; a clear error when it is not a positive integer."""
     if batch_size is None:
-        from .backend import default_batch_size
+        from ..core.backend import default_batch_size
 
         return default_batch_size()
     if isinstance(batch_size, bool) or int(batch_size) != batch_size or batch_size < 1:

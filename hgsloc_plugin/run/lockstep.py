@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from .backend import default_union_limit
-from .camera import Camera
-from .render.renderer import Renderer
+from ..core.backend import default_union_limit
+from ..core.camera import Camera
+from ..render.renderer import Renderer
 
 #: unions of working sets a :class:`Lockstep` keeps for the next rounds (each a copy of its Gaussians on the device)
 UNIONS_KEPT = 4

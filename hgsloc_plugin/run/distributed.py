@@ -1,4 +1,4 @@
-"""Ray mechanics for :mod:`hgsloc_plugin.batch`: a pool of refiner actors (optional extra ``[ray]``).
+"""Ray mechanics for :mod:`hgsloc_plugin.run.batch`: a pool of refiner actors (optional extra ``[ray]``).
 
 Each worker is a Ray actor that starts Taichi once (CUDA when the cluster has GPUs, else the CPU; the caller's
 ``HGSLOC_ARCH`` decides when set) and builds one :class:`~hgsloc_plugin.refine.Refiner` from the scene (sent once
@@ -15,7 +15,7 @@ import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
 
-from .backend import DEFAULT_BATCH_SIZE, requested_arch
+from ..core.backend import DEFAULT_BATCH_SIZE, requested_arch
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -60,14 +60,14 @@ def _worker_class(ray):
     @ray.remote
     class RefineWorker:
         def __init__(self, scene, config, raster, arch: str, threads: int):
-            from .backend import init
-            from .refine import Refiner
+            from ..core.backend import init
+            from ..refine import Refiner
 
             init(arch, cpu_threads=threads or None)
             self.refiner = Refiner(scene, config, raster)
 
         def refine_chunk(self, queries, batch_size: int | None):
-            from .backend import default_batch_size
+            from ..core.backend import default_batch_size
             from .lockstep import refine_queries
 
             batch_size = batch_size or default_batch_size()  # None: this worker's backend's default
@@ -83,7 +83,7 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
 
     Args:
         scene: a GaussianScene. config / raster: the RefineConfig and RasterConfig every worker uses.
-        queries: :class:`~hgsloc_plugin.batch.Query` objects.
+        queries: :class:`~hgsloc_plugin.run.batch.Query` objects.
         address: an existing cluster ("auto" or "ray://host:port"); None starts a local Ray with ``workers``
             CPUs (or joins the one already initialised in this process).
         chunk_size: queries sent to a worker at a time (at least its batch size).
@@ -93,7 +93,7 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
         max_retries: times a chunk is re-queued after its worker died.
     """
     ray = _require_ray()
-    from .refine import RefineResult
+    from ..refine import RefineResult
 
     started = False
     if not ray.is_initialized():

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from .pose import Pose, so3_exp
+from ..core.pose import Pose, so3_exp
 
 
 def qt_noise(T_cam_world: Pose, A: int, B: int, rng: np.random.Generator) -> Pose:

@@ -6,10 +6,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..camera import Camera
-from ..pose import Pose
-from ..render import render
-from ..scene import GaussianScene
+from ...core.camera import Camera
+from ...core.pose import Pose
+from ...core.scene import GaussianScene
+from ...render import render
 
 
 def query_poses(n: int, seed: int = 0) -> list[Pose]:

@@ -7,7 +7,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .pose import Pose, rotation_angle_deg
+from ..core.pose import Pose, rotation_angle_deg
 
 THRESHOLDS = (("5cm5deg", 0.05, 5.0), ("2cm2deg", 0.02, 2.0), ("1cm1deg", 0.01, 1.0))
 
@@ -21,7 +21,7 @@ def pose_errors(est: Pose | None, gt: Pose) -> tuple[float, float]:
 
 def unmatched(estimates: Mapping[str, object], gt: Mapping[str, object]) -> tuple[list[str], list[str]]:
     """(ground-truth names with no estimate, estimate names with no ground truth), matched across name styles."""
-    from .adapters.names import canonical_name
+    from ..adapters.names import canonical_name
 
     est_keys, gt_keys = {canonical_name(n): n for n in estimates}, {canonical_name(n): n for n in gt}
     return ([n for k, n in gt_keys.items() if k not in est_keys], [n for k, n in est_keys.items() if k not in gt_keys])
@@ -54,7 +54,7 @@ def evaluate(estimates: Mapping[str, Pose | None], gt: Mapping[str, Pose], *, sc
     units = {"scale_to_m": 1.0 if scale_to_m is None else float(scale_to_m), "assumed_metric": scale_to_m is None,
              "note": units_note(scale_to_m)}
     scale = units["scale_to_m"]
-    from .adapters.names import canonical_name
+    from ..adapters.names import canonical_name
 
     est_by_key = {canonical_name(k): v for k, v in estimates.items()}
     et, er, per = [], [], {}

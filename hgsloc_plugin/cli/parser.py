@@ -9,10 +9,10 @@ import re
 import sys
 from pathlib import Path
 
+from ..core.fileio import dumps_json
+from ..core.units import count_arg, positive_count_arg
+from ..refine.config import METRICS, PRESET_HELP
 from .commands import cmd_check, cmd_demo, cmd_evaluate, cmd_perturb, cmd_refine, cmd_render
-from .fileio import dumps_json
-from .refine.config import METRICS, PRESET_HELP
-from .units import count_arg, positive_count_arg
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
     try:
         if args.func in RENDERING_COMMANDS:  # only commands that render start Taichi
-            from .backend import init
+            from ..core.backend import init
 
             init(args.arch)
         return args.func(args)

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pose import rotmat_to_qvec
-from ..scene import SH_C0, GaussianScene
+from ...core.pose import rotmat_to_qvec
+from ...core.scene import SH_C0, GaussianScene
 
 HALF = 2.5
 HEIGHT = 2.6

@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from .camera import Camera
-from .pose import Pose
-from .render import Renderer
+from ..core.camera import Camera
+from ..core.pose import Pose
+from . import Renderer
 
 DILATION_PX2 = 0.3  # RasterConfig.eps2d's default; the footprint proxy only needs its order of magnitude
 

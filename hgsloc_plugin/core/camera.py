@@ -9,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_DISTORTED = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
+DISTORTED_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
               "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "FOV"}
 #: COLMAP's parameters of each model, in its order (``colmap/src/colmap/sensor/models.h``)
-_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
+COLMAP_PARAMS = {"SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
            "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
            "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6", "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4",
            "SIMPLE_RADIAL_FISHEYE": "f cx cy k", "RADIAL_FISHEYE": "f cx cy k1 k2",
@@ -28,7 +28,7 @@ class Distortion:
     coeffs: tuple[float, ...]
 
     def __str__(self) -> str:
-        names = _PARAMS[self.model].split()[-len(self.coeffs):] if self.coeffs else []
+        names = COLMAP_PARAMS[self.model].split()[-len(self.coeffs):] if self.coeffs else []
         return f"{self.model} " + " ".join(f"{n}={v:g}" for n, v in zip(names, self.coeffs))
 
 
@@ -86,15 +86,15 @@ class Camera:
         """
         model = str(model).upper()
         p = [float(x) for x in params]
-        if model in _PARAMS and len(p) != len(_PARAMS[model].split()):
-            raise ValueError(f"camera model {model} takes {len(_PARAMS[model].split())} parameters "
-                             f"({_PARAMS[model]}), got {len(p)}")
+        if model in COLMAP_PARAMS and len(p) != len(COLMAP_PARAMS[model].split()):
+            raise ValueError(f"camera model {model} takes {len(COLMAP_PARAMS[model].split())} parameters "
+                             f"({COLMAP_PARAMS[model]}), got {len(p)}")
         if model == "SIMPLE_PINHOLE":
             return cls(width, height, p[0], p[0], p[1], p[2])
         if model == "PINHOLE":
             return cls(width, height, p[0], p[1], p[2], p[3])
-        if model in _DISTORTED:
-            single = _PARAMS[model].startswith("f ")
+        if model in DISTORTED_MODELS:
+            single = COLMAP_PARAMS[model].startswith("f ")
             fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if single else p[:4]
             coeffs = tuple(p[3:] if single else p[4:])
             if allow_distortion or not any(coeffs):
@@ -108,7 +108,7 @@ class Camera:
         if self.distortion is None:
             return "PINHOLE", [self.fx, self.fy, self.cx, self.cy]
         model = self.distortion.model
-        if _PARAMS[model].startswith("f "):
+        if COLMAP_PARAMS[model].startswith("f "):
             if self.fx != self.fy:
                 raise ValueError(f"camera model {model} has one focal length, got fx={self.fx}, fy={self.fy}")
             return model, [self.fx, self.cx, self.cy, *self.distortion.coeffs]
@@ -175,7 +175,7 @@ def require_pinhole(camera: Camera) -> None:
     """A ValueError when ``camera`` carries distortion: a 3DGS rendering is a pinhole image."""
     if camera.distortion is not None:
         raise ValueError(f"camera {camera} has lens distortion; 3DGS renders pinhole images: undistort the photo "
-                         "first (hgsloc_plugin.image.undistort) and use the camera it returns")
+                         "first (hgsloc_plugin.core.image.undistort) and use the camera it returns")
 
 
 def size_camera(camera: Camera | Sequence[Camera]) -> Camera | None:

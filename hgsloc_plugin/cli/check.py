@@ -26,14 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .image import load_image, undistort
-from .pose import Pose
-from .refine import RefineConfig, Refiner
-from .refine.plan import median_depth
-from .refine.scorer import Scorer
-from .render import get_renderer
-from .scene import GaussianScene
+from ..core.camera import Camera
+from ..core.image import load_image, undistort
+from ..core.pose import Pose
+from ..core.scene import GaussianScene
+from ..refine import RefineConfig, Refiner
+from ..refine.plan import median_depth
+from ..refine.scorer import Scorer
+from ..render import get_renderer
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -218,7 +218,7 @@ def check_poses(scene: GaussianScene, poses: Mapping[str, Pose | None], image_of
         a, b = (torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1)[None] for x in (rgb[0], q))
         ssim.append(float(kornia.metrics.ssim(a, b, 11).mean()))
         if figures is not None:
-            from .viz import check_figure
+            from ..evaluation.viz import check_figure
 
             path = Path(figures) / (Path(name.replace("/", "_")).stem + ".check.png")
             check_figure(q, rgb[0], name, costs["as given"][-1], path)

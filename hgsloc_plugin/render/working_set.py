@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import Camera
-from .pose import Pose, rotation_angle_deg
-from .render import RendererLike
+from ..core.camera import Camera
+from ..core.pose import Pose, rotation_angle_deg
+from . import RendererLike
 
 
 def mean_pose(poses: list[Pose]) -> Pose:

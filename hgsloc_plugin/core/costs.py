@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels.layout import Stat
+from ..kernels.layout import Stat
 
 
 @dataclass(frozen=True)

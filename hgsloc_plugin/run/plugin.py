@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from ..refine import Refiner, RefineResult
 from .batch import as_queries, run_batch
-from .refine import Refiner, RefineResult
 
 
 class HGSLocPlugin(Refiner):
@@ -28,8 +28,8 @@ class HGSLocPlugin(Refiner):
                 or dicts with those keys (and optionally each query's
                 ``max_shift`` / ``max_rotation_deg`` / ``prior_error`` / ``prior_error_deg``: ``Refiner.refine``).
             workers / ray_address: spread the queries over N Ray worker processes or an existing cluster
-                (:mod:`hgsloc_plugin.distributed`); results are identical and in the same order.
-            batch_size: queries advanced together, their renders sharing launches (:mod:`hgsloc_plugin.lockstep`);
+                (:mod:`hgsloc_plugin.run.distributed`); results are identical and in the same order.
+            batch_size: queries advanced together, their renders sharing launches (:mod:`hgsloc_plugin.run.lockstep`);
                 1: one at a time; None: the backend's default (``backend.DEFAULT_BATCH_SIZE``). Same poses.
         """
         return run_batch(self, as_queries(items), workers=workers, ray_address=ray_address, progress=progress,

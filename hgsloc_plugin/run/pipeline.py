@@ -18,19 +18,19 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from .adapters.confidence import hloc_trust, inlier_trust, record_inliers
-from .adapters.dialects import read_poses, write_poses
-from .adapters.names import resolve_image
-from .adapters.posefile import PoseFile
+from ..adapters.confidence import hloc_trust, inlier_trust, record_inliers
+from ..adapters.dialects import read_poses, write_poses
+from ..adapters.names import resolve_image
+from ..adapters.posefile import PoseFile
+from ..core.camera import Camera
+from ..core.fileio import dumps_json, write_json
+from ..core.image import distortion_notice, load_image, undistort
+from ..core.pose import Pose
+from ..core.prior import QueryPrior
+from ..core.scene import GaussianScene
+from ..refine import RefineConfig, RefineResult
 from .batch import Query, run_batch
-from .camera import Camera
-from .fileio import dumps_json, write_json
-from .image import distortion_notice, load_image, undistort
 from .plugin import HGSLocPlugin
-from .pose import Pose
-from .prior import QueryPrior
-from .refine import RefineConfig, RefineResult
-from .scene import GaussianScene
 
 logger = logging.getLogger("hgsloc_plugin")
 
@@ -219,7 +219,7 @@ def _hloc_counts(pf: PoseFile, expect_log: bool) -> dict[str, float] | None:
     """hloc's PnP inlier counts for an hloc-dialect file from the log beside it (``adapters.hloc.read_inlier_log``);
     None, with one warning, when it is unreadable, or missing where ``expect_log`` (the hloc step) says it should be
     there."""
-    from .adapters.hloc import inlier_log_path, read_inlier_log
+    from ..adapters.hloc import inlier_log_path, read_inlier_log
 
     if pf.dialect != "hloc" or pf.path is None:
         return None
@@ -256,7 +256,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         gt_variant: recorded in the report ("sfm", "dslam", ...).
         figures: folder for comparison figures of each refined query.
         workers / ray_address: refine on N local Ray worker processes, or on an existing Ray cluster
-            (see :mod:`hgsloc_plugin.batch`); by default everything runs in this process.
+            (see :mod:`hgsloc_plugin.run.batch`); by default everything runs in this process.
         batch_size: queries advanced together (``batch.run_batch``; None: the backend's default). Same poses.
         inlier_region: where each pose's inlier count is known, set each query's trust region and expected prior
             error from it (``adapters/confidence.py``): the RANSAC count in ACE and GLACE files, the PnP count in
@@ -327,7 +327,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         nonlocal count
         run.record(q.name, res)
         if figures is not None and res.accepted:
-            from .viz import comparison_figure
+            from ..evaluation.viz import comparison_figure
 
             img, cam = undistort(load_image(q.image, background=refiner.config.background), q.camera)
             comparison_figure(refiner.scene, cam, img, q.coarse_pose, res.pose,

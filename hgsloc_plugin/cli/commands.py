@@ -6,15 +6,15 @@ import logging
 import sys
 from pathlib import Path
 
-from .fileio import dumps_json
-from .units import parse_angle, parse_length, prior_error_overrides
+from ..core.fileio import dumps_json
+from ..core.units import parse_angle, parse_length, prior_error_overrides
 
 logger = logging.getLogger("hgsloc_plugin")
 EXIT_FAILED_QUERIES = 3
 
 
 def _intrinsics(args):
-    from .adapters import intrinsics as intr
+    from ..adapters import intrinsics as intr
 
     given = [x for x in (args.focal, args.intrinsics, args.colmap, args.pgt_focal) if x is not None]
     if len(given) != 1:
@@ -30,15 +30,15 @@ def _intrinsics(args):
 
 def _white(args) -> bool:
     """--white-background, or what the trainer recorded in the --scene folder's cfg_args."""
-    from .scene import resolve_scene
+    from ..core.scene import resolve_scene
 
     return bool(args.white_background or resolve_scene(args.scene)[1])
 
 
 def cmd_refine(args) -> int:
-    from .pipeline import refine_pose_file, resumable
-    from .plugin import HGSLocPlugin
-    from .refine import RefineConfig
+    from ..refine import RefineConfig
+    from ..run.pipeline import refine_pose_file, resumable
+    from ..run.plugin import HGSLocPlugin
 
     overrides = {}
     if args.metric:
@@ -110,14 +110,14 @@ def _require_folder(path) -> None:
 
 def _inputs(args):
     """The command's scene and pose file, each read once: (GaussianScene, PoseFile)."""
-    from .adapters import read_poses
-    from .scene import GaussianScene
+    from ..adapters import read_poses
+    from ..core.scene import GaussianScene
 
     return GaussianScene.from_ply(args.scene), read_poses(args.poses)
 
 
 def _check(args, sample: int, figures=None, inputs=None, intrinsics=None):
-    from .adapters.names import resolve_image
+    from ..adapters.names import resolve_image
     from .check import check_poses
 
     scene, pf = inputs or _inputs(args)
@@ -147,8 +147,8 @@ def cmd_check(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from .adapters import read_poses
-    from .evaluate import evaluate, mean_over_scenes, units_note, unmatched
+    from ..adapters import read_poses
+    from ..evaluation.evaluate import evaluate, mean_over_scenes, units_note, unmatched
 
     if len(args.poses) != len(args.gt):
         raise ValueError("give one --gt per --poses (one pair per scene)")
@@ -194,7 +194,7 @@ def cmd_evaluate(args) -> int:
 
 def _require_complete(path) -> None:
     """A ValueError when ``path``'s report (``refine``'s ``PATH.json``) says its run did not complete."""
-    from .pipeline import read_report, report_path
+    from ..run.pipeline import read_report, report_path
 
     rep = read_report(Path(path))
     if rep is not None and rep.get("complete") is False:
@@ -214,8 +214,8 @@ def _floats(text: str, n: int, what: str) -> list[float]:
 
 
 def cmd_render(args) -> int:
-    from . import Camera, GaussianScene, Pose, render
-    from .viz import save_png
+    from .. import Camera, GaussianScene, Pose, render
+    from ..evaluation.viz import save_png
 
     p = _floats(args.pose, 7, "--pose 'qw qx qy qz tx ty tz'")
     c = _floats(args.camera, 6, "--camera 'W H fx fy cx cy'")
@@ -230,8 +230,8 @@ def cmd_render(args) -> int:
 def cmd_perturb(args) -> int:
     import numpy as np
 
-    from .adapters import read_poses, write_poses
-    from .noise import apply_protocol, parse_protocol
+    from ..adapters import read_poses, write_poses
+    from ..evaluation.noise import apply_protocol, parse_protocol
 
     kind, a, b = parse_protocol(args.noise)  # a bad spec is an error before anything is read
     if Path(args.out).resolve() == Path(args.poses).resolve():
@@ -259,9 +259,9 @@ def _depths(args, pf) -> dict:
     """name -> the median depth (scene units) of the map at each usable pose, for ``perturb --noise P%,Rdeg``."""
     from PIL import Image
 
-    from .adapters.names import resolve_image
-    from .refine.plan import median_depth
-    from .scene import GaussianScene
+    from ..adapters.names import resolve_image
+    from ..core.scene import GaussianScene
+    from ..refine.plan import median_depth
 
     sources = [args.focal, args.intrinsics, args.colmap, args.pgt_focal]
     if args.scene is None or args.images is None or all(x is None for x in sources):

@@ -1,0 +1,1 @@
+"""Measuring refinements: errors against ground truth (``evaluate``), noisy priors (``noise``), figures (``viz``)."""

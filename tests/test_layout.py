@@ -161,3 +161,4 @@ def test_scene_is_released_when_the_caller_drops_it():
     del scene, refiner
     gc.collect()
     assert ref() is None, "the renderer cache kept the scene alive"
+

@@ -22,7 +22,7 @@ from hgsloc_plugin.run.batch import as_queries
 from hgsloc_plugin.run.lockstep import Lockstep, refine_queries
 
 from .conftest import random_scene, room_query
-from .test_trust import SNOW, _snow
+from .test_trust import SNOW, snow_case
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +150,7 @@ def _record(res) -> dict:
 
 
 def _snow_items(cam: hp.Camera, queries: list) -> list:
-    """(image, camera, prior, name) per snow photo of ``_snow``'s ``queries``: priors 2 % of the depth / 1 deg off
+    """(image, camera, prior, name) per snow photo of ``snow_case``'s ``queries``: priors 2 % of the depth / 1 deg off
     (the gradient route), the second 12 % / 6 deg (the search)."""
     rng = np.random.default_rng(21)
     items = []
@@ -167,7 +167,7 @@ def test_real_photos_batched_equal_one_at_a_time():
     deg priors: the gradient route; 12 % / 6 deg: the search) and one bad image: in lockstep batches of 3 (so a
     finished query makes room for the next) every result equals the one-at-a-time result field for field, in input
     order, the bad image fails alone, and launches serve several queries' calls at once."""
-    scene, cam, queries = _snow("snow_sharp.ply")
+    scene, cam, queries = snow_case("snow_sharp.ply")
     items = _snow_items(cam, queries[:4])
     items.insert(2, (np.zeros((5, 5, 3)), cam, items[0][2], "bad"))
     refiner = hp.HGSLocPlugin(scene)
@@ -194,7 +194,7 @@ def test_real_photos_in_the_cuda_layout_match_the_cpu_layout():
     routes (the gradient from 2 % / 1 deg, the search from 12 % / 6 deg) and acceptance. What a GPU adds is its
     compiler's rounding."""
     cuda_layout = hp.RasterConfig(**CUDA_LAYOUT)
-    scene, cam, queries = _snow("snow_sharp.ply")
+    scene, cam, queries = snow_case("snow_sharp.ply")
     items = _snow_items(cam, queries[:3])
     cpu = hp.HGSLocPlugin(scene).refine_many(items, progress=False, batch_size=1)
     cuda = hp.HGSLocPlugin(scene, raster=cuda_layout).refine_many(items, progress=False, batch_size=3)

@@ -101,7 +101,7 @@ def test_user_trust_region_bounds_the_search():
         assert shift > moved, "the search moved towards the optimum up to the region"
 
 
-def _snow(ply: str = "snow.ply"):
+def snow_case(ply: str = "snow.ply"):
     import json as _json
 
     from hgsloc_plugin.core.image import load_image
@@ -124,7 +124,7 @@ def test_real_photos_true_pose_is_kept_and_priors_improve():
     """Real photos, imperfect map: started at the true pose, the search drifts (the map's cost minimum is off
     the truth) but the rule keeps the true pose; from a 2 % depth / 1 deg prior the returned pose is accepted and
     closer to the truth than the prior."""
-    scene, cam, queries = _snow()
+    scene, cam, queries = snow_case()
     refiner = hp.HGSLocPlugin(scene)
     for name, gt, img, depth in [queries[2], queries[5]]:
         r = refiner.refine(img, cam, gt, name=name)
@@ -150,7 +150,7 @@ def test_real_photo_far_prior_is_fixed_by_the_wide_search():
     row, query 1), beyond the gradient route and the usual search, is brought within 1 % of the depth / 0.5 deg by
     the wide search, whose lattice scores at ``wide_max_side`` (32 px); scoring that lattice at the pyramid size
     instead (the wide search until 2026-12-02) ends in a plateau and keeps the prior."""
-    scene, cam, queries = _snow("snow_sharp.ply")
+    scene, cam, queries = snow_case("snow_sharp.ply")
     rng = np.random.default_rng(410)
     priors = [se3_noise(gt, 10.0, 0.2 * depth, rng) for _, gt, _, depth in queries]
     name, gt, img, depth = queries[1]
@@ -170,7 +170,7 @@ def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
     1 deg, ``max_shift`` / ``max_rotation_deg``) keeps that prior and still refines query 1 (benchmarks/trust.py,
     row "region 2 cm / 1 deg": 0 worse); the expected error of a confident ACE pose, fused with the refinement,
     does better than both."""
-    scene, cam, queries = _snow()
+    scene, cam, queries = snow_case()
     rng = np.random.default_rng(10)  # benchmarks/trust.py's 1 cm / 0.5 deg priors: 1 cm-eq = depth / 200
     priors = [se3_noise(gt, 0.5, depth / 200.0, rng) for _, gt, _, depth in queries[:2]]
     (n0, gt0, img0, d0), (n1, gt1, img1, d1) = queries[:2]
@@ -379,7 +379,7 @@ def _quadratic_judge(model: str, scale: float = 1e-6):
 
     from hgsloc_plugin.refine.polish import PolishStats
     from hgsloc_plugin.refine.routes import Candidate
-    from hgsloc_plugin.refine.trust import _moves, judge
+    from hgsloc_plugin.refine.trust import judge, pixel_moves
 
     cam = hp.Camera(100, 80, 90.0, 90.0, 50.0, 40.0)
     best = hp.Pose.identity().perturbed_in_camera([0.01, -0.02, 0.005], [0.1, 0.0, -0.05])
@@ -405,7 +405,7 @@ def _quadratic_judge(model: str, scale: float = 1e-6):
     stats = PolishStats(cam.width, cam.height, 0.2, 0.1, 3, 3, 0, 0.01, "converged", H, grad)
     cand = Candidate("gradient", best, math.nan, math.nan, best, polish=[stats])
     verdict = judge(cand, plan, scorer, cam, rule="trust", lattice=True, structural=True, pivot=True)
-    rises = np.array([cost(m) for m in _moves(best, plan, cam, True)]) - 0.1
+    rises = np.array([cost(m) for m in pixel_moves(best, plan, cam, True)]) - 0.1
     return verdict, batches, rises
 
 

@@ -198,7 +198,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     is not rendered again (``PolishStats.cost_rendered``)."""
     coarse = plan.coarse_pose
     trust = rule == "trust" and lattice
-    moves = _moves(cand.pose, plan, cam, pivot) if trust else []
+    moves = pixel_moves(cand.pose, plan, cam, pivot) if trust else []
     model = model_moves(cand, moves, cam)
     first = moves if model is None else [moves[i] for i in model[0]]
     uncertainty = pose_uncertainty(*scorer.band_gradients(cand.pose, BANDS), plan.depth) if cand.polish else None
@@ -252,7 +252,7 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     return out
 
 
-def _moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
+def pixel_moves(best: Pose, plan: Plan, cam: Camera, pivot: bool) -> list[Pose]:
     """The 12 lattice moves of one pixel of image motion at ``cam``'s size around ``best``."""
     from .search import LatticeSpace
 

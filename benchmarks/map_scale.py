@@ -133,7 +133,7 @@ def stages(k: int) -> str:
     r = refiner._working_set(plan)
     r = r.covering([prior]) if hasattr(r, "covering") else r
     cam, bg = plan.cam_final, (0.0, 0.0, 0.0)
-    ws = r._workspace(cam, 1)
+    ws = r.workspace(cam, 1)
     g, rec = r.gaussians, r.pool.records
 
     def project():

@@ -41,7 +41,7 @@ def rows(case: str, repeats: int) -> list[str]:
 def entries(r, cam: hp.Camera, pose, bg) -> int:
     """Tile-list entries of one render of ``pose``."""
     r.render_full(cam, [pose], bg)
-    return int(read_rows(r._workspace(cam, 1).tile_start, 1)[0, -1])
+    return int(read_rows(r.workspace(cam, 1).tile_start, 1)[0, -1])
 
 
 def size_row(case: str, renderers, cam: hp.Camera, image: np.ndarray, poses: list, bg) -> str:

@@ -65,7 +65,7 @@ def child(case: str, repeats: int) -> dict:
     renderer._sort = timed
     out = {"checkout": str(Path(hp.__file__).resolve().parents[1])}
     for label, batch in (("one", poses[:1]), ("batch", poses)):
-        ws = renderer._workspace(plan.cam_final, len(batch))
+        ws = renderer.workspace(plan.cam_final, len(batch))
         renderer._geometry(plan.cam_final, batch, ws, bg)  # warm-up
         spent.clear()
         for _ in range(repeats):

@@ -328,7 +328,7 @@ def row_sums(value, pixel=_no_pixel_outputs):
     return run
 
 
-def _vertical_cost(with_luminance: bool):
+def vertical_cost(with_luminance: bool):
     """:func:`row_sums` of the per-pixel cs, or with ``with_luminance`` SSIM (cs times the luminance term)."""
 
     @ti.func
@@ -349,7 +349,7 @@ def window_cost_kernel(config, splat: bool, with_luminance: bool):
     vertical pass's per-row sums into rows [B, H, 1, 2], then their totals per pose into ``out`` [B, 2] float64
     (sum of the per-pixel values, valid pixels; a host array: no read-back launch)."""
     blend = splat_image_func(config, depth=False) if splat else image_func(config, depth=False)
-    vertical = _vertical_cost(with_luminance)
+    vertical = vertical_cost(with_luminance)
     f32, i32 = ti.f32, ti.i32
 
     @ti.kernel

@@ -69,7 +69,7 @@ def _cs(cs, m, mq):
 #: Per pixel and channel, from the rendering's horizontal window pass (``window.horizontal``): weights [B, H, W,
 #: NW] (A = 1/D, B = N/D^2 per channel c at 2c, 2c + 1; G = max(cs, 0) / D at 6 + c; 0 on invalid pixels), means
 #: [B, H, W, 6] (m_r, dbar = m_r - m_q per channel), passed as ``outs``, and rows [B, H, 1, >= 2]: fields 0, 1 =
-#: (sum of the channel-mean cs, valid pixels), the same numbers as ``window._vertical_cost(False)``
+#: (sum of the channel-mean cs, valid pixels), the same numbers as ``window.vertical_cost(False)``
 #: (``window.row_sums``).
 cs_terms = row_sums(_cs, _pixel_weights)
 

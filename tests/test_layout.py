@@ -162,3 +162,57 @@ def test_scene_is_released_when_the_caller_drops_it():
     gc.collect()
     assert ref() is None, "the renderer cache kept the scene alive"
 
+
+
+def _private_reaches(f: Path) -> list[str]:
+    """``x._name`` on another object than ``self`` / ``cls`` and ``from m import _name`` in file ``f``; an object of
+    the accessing class's own kind (a class that sets or defines ``_name`` itself) may be reached."""
+    outside = {"taichi", "gsplat"}  # their privates: the kernels' launcher and the reference renderer need them
+    tree = ast.parse(f.read_text())
+    found = []
+    foreign = {a.asname or a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+               for a in n.names if ((n.module or "") if isinstance(n, ast.ImportFrom) else a.name).split(".")[0]
+               in outside}
+
+    def own_names(cls: ast.ClassDef) -> set[str]:
+        names = {n.name for n in cls.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+        for n in ast.walk(cls):
+            if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id == "self":
+                names.add(n.attr)
+            elif (isinstance(n, ast.Call) and getattr(n.func, "attr", None) == "__setattr__" and len(n.args) > 1
+                  and isinstance(n.args[1], ast.Constant)):
+                names.add(n.args[1].value)
+        return names
+
+    def visit(node, own: set[str]):
+        for child in ast.iter_child_nodes(node):
+            mine = own | own_names(child) if isinstance(child, ast.ClassDef) else own
+            if (isinstance(child, ast.Attribute) and child.attr.startswith("_") and not child.attr.startswith("__")
+                    and not (isinstance(child.value, ast.Name) and child.value.id in ("self", "cls", *foreign))
+                    and child.attr not in own):
+                found.append(f"{f.relative_to(ROOT)}:{child.lineno}: .{child.attr}")
+            elif isinstance(child, ast.ImportFrom) and (child.module or "").split(".")[0] not in outside:
+                found.extend(f"{f.relative_to(ROOT)}:{child.lineno}: import {a.name}" for a in child.names
+                             if a.name.startswith("_") and not a.name.startswith("__"))
+            visit(child, mine)
+
+    visit(tree, set())
+    return found
+
+
+def test_no_reach_into_another_modules_or_objects_private_names():
+    """A name that starts with ``_`` is used only in its own module, and as an attribute only on ``self``, ``cls`` or
+    an object of the same class: in the package and its tests."""
+    bad = [r for folder in ("hgsloc_plugin", "kernels", "adapters", "tests")
+           for f in sorted((ROOT / folder).rglob("*.py")) for r in _private_reaches(f)]
+    assert not bad, bad
+
+
+def test_the_reach_test_sees_a_reach(tmp_path):
+    f = ROOT / "tests" / "_reach_probe.py"
+    try:
+        f.write_text("class A:\n    def __init__(self):\n        self._x = 1\n\n    def same(self, o):\n"
+                     "        return o._x\n\n\ndef other(r):\n    return r._workspace\n")
+        assert _private_reaches(f) == ["tests/_reach_probe.py:10: ._workspace"]
+    finally:
+        f.unlink()

@@ -73,7 +73,7 @@ def test_query_slots_copy_each_query_once_and_recycle_the_least_recent():
     """A lockstep's query slots (one device array per image size): each query's statistics are copied into a slot
     once and stay there while used; when the slots are full the least recently used query not in the group gives
     way; a launch against the slots scores every pose as a launch of its own query does, bit for bit."""
-    from hgsloc_plugin.run.lockstep import _QuerySlots
+    from hgsloc_plugin.run.lockstep import QuerySlots
 
     scene, cam, images, poses = _stack_case()
     r = get_renderer(scene)
@@ -81,7 +81,7 @@ def test_query_slots_copy_each_query_once_and_recycle_the_least_recent():
     images = list(images) + [np.clip(im + rng.normal(scale=0.05, size=im.shape), 0, 1).astype(np.float32)
                              for im in images]
     stats = [r.upload_window_query(im) for im in images]  # six queries
-    slots = _QuerySlots(4, tuple(stats[0].shape[1:]))
+    slots = QuerySlots(4, tuple(stats[0].shape[1:]))
     copies = []
     original = r.stack_window_queries
     r.stack_window_queries = lambda qs, out=None, slots=None: copies.append(len(qs)) or original(qs, out, slots)

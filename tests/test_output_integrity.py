@@ -233,7 +233,7 @@ def test_first_run_says_the_kernels_compile(tmp_path, monkeypatch, caplog):
     from hgsloc_plugin.core import backend
 
     code = ("import logging; logging.basicConfig(); from hgsloc_plugin.core import backend; "
-            "backend._compile_notice('cpu', 3)")
+            "backend.compile_notice('cpu', 3)")
     env = {**__import__("os").environ, "HGSLOC_CACHE_DIR": str(tmp_path)}
     first = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     second = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
@@ -241,7 +241,7 @@ def test_first_run_says_the_kernels_compile(tmp_path, monkeypatch, caplog):
     assert second.stderr == ""  # the first process marked this cache warm for this thread count
     monkeypatch.setenv("HGSLOC_CACHE_DIR", str(tmp_path))
     with caplog.at_level("WARNING", logger="hgsloc_plugin"):
-        backend._compile_notice("cpu", 5)  # another thread count compiles its own set
+        backend.compile_notice("cpu", 5)  # another thread count compiles its own set
     assert "5 threads" in caplog.text
 
 

@@ -232,8 +232,10 @@ def test_the_rule_reuses_the_render_of_the_polished_pose():
 
     scorer = Scorer(r, "cs", (0.0, 0.0, 0.0), 0.0)
     scorer.set_query(cam, img)
-    rendered, score = [], scorer._score
-    scorer._score = lambda poses: rendered.extend(p.as_array().tobytes() for p in poses) or score(poses)
+    rendered, render = [], r.window_cost
+    scorer.renderer = SimpleNamespace(window_cost=lambda camera, poses, *a, **k: rendered.extend(
+        p.as_array().tobytes() for p in poses) or render(camera, poses, *a, **k),
+        pose_gradient_bands=r.pose_gradient_bands)
     plan = SimpleNamespace(coarse_pose=start, prior_error=None, prior_error_deg=None, depth=depth,
                            levels=((1.0, 0.1),), travel=lambda p: 0.1)
     cand = Candidate("gradient", pose, math.nan, math.nan, start, polish=[st])
@@ -698,7 +700,7 @@ def test_derivative_pass_tiling_changes_no_number(name):
     q = got.upload_window_query(img)
     assert_same_to_rounding(got.render_derivatives(cam, poses), ref.render_derivatives(cam, poses),
                             got.pose_gradient(cam, poses, q), ref.pose_gradient(cam, poses, q))
-    tiles = [r._workspace(cam, 3, grad=True).tiles for r in (got, ref)]
+    tiles = [r.workspace(cam, 3, grad=True).tiles for r in (got, ref)]
     assert tiles[0][0] > tiles[1][0]  # the lists really were binned differently
 
 
@@ -708,7 +710,7 @@ def _masks_and_reference(r, cam, T):
     from hgsloc_plugin.kernels.layout import Rec
 
     r.render_derivatives(cam, [T])  # geometry at the derivative pass's tiling, then the masks
-    ws = r._workspace(cam, 1, grad=True)
+    ws = r.workspace(cam, 1, grad=True)
     starts = ws.tile_start.to_numpy()[0]
     m = int(starts[-1])
     lists, masks = r.pool.lists.isect.to_numpy()[:m], r.pool.pixel_masks().to_numpy()[:m]

@@ -93,7 +93,7 @@ def test_tile_lists_match_reference_binning():
     T = hp.Pose.identity()
     r = get_renderer(scene, hp.RasterConfig(tile_test="box"))
     r.render_full(cam, [T])
-    ws = r._workspace(cam, 1)
+    ws = r.workspace(cam, 1)
     starts = read_rows(ws.tile_start, 1)[0]  # torch tensors with the parallel sort (CUDA)
     isect = read_rows(r.pool.lists.isect, int(starts[-1]))
     ref = bin_tiles(project(scene, cam, T.matrix()), cam)

@@ -22,7 +22,7 @@ def renderers(scene, **kw):
 
 def lists(r, cam, n_poses, grad=False):
     """(tile_start [B, T + 1], the B poses' entries of isect) of a renderer's last binning at ``cam``."""
-    ws = r._workspace(cam, n_poses, grad=grad)
+    ws = r.workspace(cam, n_poses, grad=grad)
     starts = read_rows(ws.tile_start, n_poses)
     return starts, read_rows(r.pool.lists.isect, int(starts[:, -1].sum()))
 

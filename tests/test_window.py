@@ -142,7 +142,7 @@ def window_cost_rows(rgb, alpha, query, mask_alpha, luminance):
 @functools.cache
 def window_rows_kernel(layout: str, luminance: bool):
     hp.init()
-    vertical = window._vertical_cost(luminance)
+    vertical = window.vertical_cost(luminance)
     horizontal = window.horizontal
 
     @ti.kernel

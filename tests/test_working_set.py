@@ -159,9 +159,9 @@ def test_working_sets_share_workspaces_and_ignore_stale_columns():
     assert small.n < big.n < full.n
     poses = [T, se3_noise(T, 0.3, 0.005, np.random.default_rng(1))]
     big.render_full(cam, poses)
-    ws = big._workspace(cam, 2)
+    ws = big.workspace(cam, 2)
     got = small.render_full(cam, poses)
-    assert small._workspace(cam, 2) is ws and small.pool is full.pool
+    assert small.workspace(cam, 2) is ws and small.pool is full.pool
     fresh = full.subset(np.flatnonzero(np.isin(full.source_index, small.source_index)).astype(np.int32))
     fresh.pool = Pool()  # its own, exactly sized workspaces
     for x, y, z in zip(got, fresh.render_full(cam, poses), full.render_full(cam, poses)):

@@ -77,11 +77,11 @@ def init(arch: str | None = None, *, debug: bool = False, cpu_threads: int | Non
         return _ARCH
     with contextlib.redirect_stdout(sys.stderr):  # Taichi prints its banner and arch line on stdout
         _ARCH = _start(requested, debug, cpu_threads)
-    _compile_notice(_ARCH, cpu_threads)
+    compile_notice(_ARCH, cpu_threads)
     return _ARCH
 
 
-def _compile_notice(arch: str, cpu_threads: int | None) -> None:
+def compile_notice(arch: str, cpu_threads: int | None) -> None:
     """Say that kernels compile as first used when this cache holds no earlier run of this backend and thread
     count (a marker file, written when the process exits), instead of half a minute without a word."""
     import atexit

@@ -1,8 +1,11 @@
-"""The pose-derivative path: images with their derivatives in the pose increment, and the cs cost's gradient.
+"""The pose-derivative path, a base class of the renderer: images with their derivatives in the pose increment,
+and the cs cost's gradient.
 
 ``xi = (w, v)`` is the increment of ``Pose.perturbed_in_camera(w, v)`` (rotation, then camera-frame shift). The
 kernels are ``kernels/pose_grad.py`` (per-Gaussian derivative records, derivative blending) and
-``kernels/window_grad.py`` (the windowed cs cost's gradient and Gauss-Newton system).
+``kernels/window_grad.py`` (the windowed cs cost's gradient and Gauss-Newton system). :class:`PoseDerivatives`
+uses the renderer's own workspaces, geometry pass and batching (``Renderer._workspace``, ``_geometry``,
+``_chunks``, ``_query_parts``): it is the renderer's derivative half, kept in a module of its own.
 """
 
 from __future__ import annotations
@@ -19,101 +22,104 @@ from ..kernels.pose_grad import NXI, derivative_images_kernel
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 
 
-def derivative_workspace(r, camera: Camera, batch: int) -> DerivativeWorkspace:
-    """The derivative pass's image-sized buffers at ``camera``'s size (grown when ``batch`` needs more), with the
-    pool's derivative records sized for it."""
-    key = (camera.width, camera.height)
-    ws = r.pool.derivative_workspaces.get(key)
-    if ws is None or ws.batch < batch:
-        batch = max(batch, ws.batch if ws is not None else 0)
-        ws = DerivativeWorkspace.allocate(batch, camera.height, camera.width)
-        r.pool.derivative_workspaces[key] = ws
-    r.pool.derivative_records_for(ws.batch, r.n)
-    return ws
+class PoseDerivatives:
+    """The renderer's pose-derivative methods (``Renderer`` inherits them); ``self`` is the renderer."""
+
+    def derivative_workspace(self, camera: Camera, batch: int) -> DerivativeWorkspace:
+        """The derivative pass's image-sized buffers at ``camera``'s size (grown when ``batch`` needs more), with the
+        pool's derivative records sized for it."""
+        key = (camera.width, camera.height)
+        ws = self.pool.derivative_workspaces.get(key)
+        if ws is None or ws.batch < batch:
+            batch = max(batch, ws.batch if ws is not None else 0)
+            ws = DerivativeWorkspace.allocate(batch, camera.height, camera.width)
+            self.pool.derivative_workspaces[key] = ws
+        self.pool.derivative_records_for(ws.batch, self.n)
+        return ws
 
 
-def derivative_images(r, cams: list[Camera], part: list[Pose], background) -> DerivativeWorkspace:
-    """Geometry, derivative records and derivative blending of up to ``r.grad_chunk`` poses (a camera each, one
-    image size); the images stay on the device (``rgb``, ``alpha``, ``drgb`` of the returned workspace)."""
-    camera = cams[0]
-    ws = r._workspace(camera, len(part), grad=True)
-    r._geometry(cams, part, ws, background)
-    g = derivative_workspace(r, camera, min(r.grad_chunk, len(part)))
-    rec, drec, gs = r.pool.records, r.pool.derivative_records, r.gaussians
-    n = len(part)
-    # the blend layout of the renders (RasterConfig.blend): one task per tile on the CPU, per pixel on CUDA, where
-    # each pixel may skip the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
-    tx, ty = ws.tiles
-    masks = r.pool.pixel_masks() if r.grad_masks else r.pool.placeholder(ti.u64)
-    launcher(derivative_images_kernel(r.config, r.blend_mode == "splat", r.grad_masks))(
-        gs.means, gs.cov3d, ws.viewmats, ws.cams, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
-        rec.packed, ws.tile_start, r.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb, g.alpha,
-        g.drgb)
-    return g
-
-
-def render_derivatives(r, camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
-    """Colour [B, H, W, 3], alpha [B, H, W] and d colour / d xi [B, H, W, 3, 6] of each pose (float32);
-    ``camera``: one, or one per pose (one image size)."""
-    rgbs, alphas, ders = [], [], []
-    for cams, part in r._chunks(camera, poses, r.grad_chunk):
-        g = derivative_images(r, cams, part, background)
-        n = len(part)
+    def derivative_images(self, cams: list[Camera], part: list[Pose], background) -> DerivativeWorkspace:
+        """Geometry, derivative records and derivative blending of up to ``self.grad_chunk`` poses (a camera each, one
+        image size); the images stay on the device (``rgb``, ``alpha``, ``drgb`` of the returned workspace)."""
         camera = cams[0]
-        rgbs.append(read_rows(g.rgb, n))
-        alphas.append(read_rows(g.alpha, n))
-        ders.append(read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
-    return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
-
-
-def pose_gradient(r, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-                  query_index=None):
-    """cs cost [B], its gradient [B, 6] and Gauss-Newton Hessian [B, 6, 6] in ``xi`` (float64) of each pose
-    against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] at slot ``query_index`` [B] (None: 0)."""
-    costs, grads, hessians = [], [], []
-    iu = np.triu_indices(NXI)
-    for cams, part, qi in r._query_parts(camera, poses, query_index, r.grad_chunk):
-        g = derivative_images(r, cams, part, background)
+        ws = self.workspace(camera, len(part), grad=True)
+        self._geometry(cams, part, ws, background)
+        g = self.derivative_workspace(camera, min(self.grad_chunk, len(part)))
+        rec, drec, gs = self.pool.records, self.pool.derivative_records, self.gaussians
         n = len(part)
+        # the blend layout of the renders (RasterConfig.blend): one task per tile on the CPU, per pixel on CUDA, where
+        # each pixel may skip the Gaussians of its tile's list that cannot reach it on one bit of their pixel mask
+        tx, ty = ws.tiles
+        masks = self.pool.pixel_masks() if self.grad_masks else self.pool.placeholder(ti.u64)
+        launcher(derivative_images_kernel(self.config, self.blend_mode == "splat", self.grad_masks))(
+            gs.means, gs.cov3d, ws.viewmats, ws.cams, camera.width, camera.height, n, rec.ntiles, drec.dpacked,
+            rec.packed, ws.tile_start, self.pool.lists.isect, ws.isect_base, masks, ws.background, tx, ty, g.rgb,
+            g.alpha, g.drgb)
+        return g
+
+
+    def render_derivatives(self, camera, poses: list[Pose], background=(0.0, 0.0, 0.0)):
+        """Colour [B, H, W, 3], alpha [B, H, W] and d colour / d xi [B, H, W, 3, 6] of each pose (float32);
+        ``camera``: one, or one per pose (one image size)."""
+        rgbs, alphas, ders = [], [], []
+        for cams, part in self._chunks(camera, poses, self.grad_chunk):
+            g = self.derivative_images(cams, part, background)
+            n = len(part)
+            camera = cams[0]
+            rgbs.append(read_rows(g.rgb, n))
+            alphas.append(read_rows(g.alpha, n))
+            ders.append(read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
+        return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
+
+
+    def cs_gradient(self, camera, poses: list[Pose], qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+                    query_index=None):
+        """cs cost [B], its gradient [B, 6] and Gauss-Newton Hessian [B, 6, 6] in ``xi`` (float64) of each pose
+        against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] at slot ``query_index`` [B] (None: 0)."""
+        costs, grads, hessians = [], [], []
+        iu = np.triu_indices(NXI)
+        for cams, part, qi in self._query_parts(camera, poses, query_index, self.grad_chunk):
+            g = self.derivative_images(cams, part, background)
+            n = len(part)
+            if g.window is None:
+                g.window = WindowGradBuffers.allocate(*g.alpha.shape)
+            w = g.window
+            out = np.empty((n, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
+            launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h,
+                                                     w.wts, w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
+            sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
+            scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
+            hess = np.zeros((n, NXI, NXI))
+            hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]
+            hess = hess + np.triu(hess, 1).transpose(0, 2, 1)
+            costs.append(cost_from_window(sums))
+            grads.append(sys[:, window_grad.NH:] * scale[:, None])
+            hessians.append(hess * scale[:, None, None])
+        return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)
+
+
+    def pose_gradient_bands(self, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0),
+                            mask_alpha: float = 0.0, bands: int = 12) -> tuple[np.ndarray, np.ndarray]:
+        """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose`` and its gradient split by image rows into ``bands``
+        horizontal bands of (nearly) equal height [bands, 6] (float64; the bands sum to the whole gradient), from one
+        derivative pass against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] (slot 0); what the pose's
+        cluster-robust covariance needs (``refine/uncertainty.py``)."""
+        if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
+            raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs (Q, {camera.height}, "
+                             f"{camera.width}, 3, {window.NQ})")
+        iu = np.triu_indices(NXI)
+        (cams, part, qi), = self._query_parts(camera, [pose], None, 1)
+        g = self.derivative_images(cams, part, background)
         if g.window is None:
             g.window = WindowGradBuffers.allocate(*g.alpha.shape)
         w = g.window
-        out = np.empty((n, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
-        launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), n, w.h,
+        out = np.empty((1, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
+        launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), 1, w.h,
                                                  w.wts, w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
-        sums, sys = out[:, :window_grad.ROW_SYS], out[:, window_grad.ROW_SYS:]
-        scale = 2.0 / (3.0 * np.maximum(sums[:, 1], 1.0))
-        hess = np.zeros((n, NXI, NXI))
-        hess[:, iu[0], iu[1]] = sys[:, :window_grad.NH]
-        hess = hess + np.triu(hess, 1).transpose(0, 2, 1)
-        costs.append(cost_from_window(sums))
-        grads.append(sys[:, window_grad.NH:] * scale[:, None])
-        hessians.append(hess * scale[:, None, None])
-    return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)
-
-
-def pose_gradient_bands(r, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
-                        bands: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose`` and its gradient split by image rows into ``bands``
-    horizontal bands of (nearly) equal height [bands, 6] (float64; the bands sum to the whole gradient), from one
-    derivative pass against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] (slot 0); what the pose's
-    cluster-robust covariance needs (``refine/uncertainty.py``)."""
-    if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
-        raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs (Q, {camera.height}, "
-                         f"{camera.width}, 3, {window.NQ})")
-    iu = np.triu_indices(NXI)
-    (cams, part, qi), = r._query_parts(camera, [pose], None, 1)
-    g = derivative_images(r, cams, part, background)
-    if g.window is None:
-        g.window = WindowGradBuffers.allocate(*g.alpha.shape)
-    w = g.window
-    out = np.empty((1, window_grad.ROW_SYS + window_grad.NSYS), np.float64)
-    launcher(window_grad.cs_system_kernel())(g.rgb, g.alpha, g.drgb, qstats, qi, float(mask_alpha), 1, w.h,
-                                             w.wts, w.means, w.tmpj, w.jbar, w.tmpw, w.hat, w.rows, out)
-    sums, sys = out[0, :window_grad.ROW_SYS], out[0, window_grad.ROW_SYS:]
-    scale = 2.0 / (3.0 * max(float(sums[1]), 1.0))
-    hess = np.zeros((NXI, NXI))
-    hess[iu] = sys[:window_grad.NH]
-    hess = (hess + np.triu(hess, 1).T) * scale
-    rows = w.rows.to_numpy()[0, :camera.height, 0, window_grad.ROW_SYS + window_grad.NH:].astype(np.float64)
-    return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale
+        sums, sys = out[0, :window_grad.ROW_SYS], out[0, window_grad.ROW_SYS:]
+        scale = 2.0 / (3.0 * max(float(sums[1]), 1.0))
+        hess = np.zeros((NXI, NXI))
+        hess[iu] = sys[:window_grad.NH]
+        hess = (hess + np.triu(hess, 1).T) * scale
+        rows = w.rows.to_numpy()[0, :camera.height, 0, window_grad.ROW_SYS + window_grad.NH:].astype(np.float64)
+        return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale

@@ -25,15 +25,15 @@ from ..kernels.layout import Stat
 from ..kernels.pose_grad import uses_masks
 from ..kernels.projection import projection_kernel
 from ..kernels.tile_sort import bin_parallel, tile_sort_kernel
-from . import derivatives
 from .buffers import ImageBuffers, Pool, StatBuffers, WindowBuffers, Workspace, blend_mode, read_rows, sort_mode
+from .derivatives import PoseDerivatives
 from .prepare import DeviceGaussians, upload
 
 #: the share of the Gaussians from which a selection (a working set, a union of them) is rendered from the whole map
 NEARLY_ALL = 0.95
 
 
-class Renderer:
+class Renderer(PoseDerivatives):
     """One scene's Gaussians resident on the Taichi device (``RendererLike``).
 
     It holds no reference to the :class:`GaussianScene`, so a cache keyed by the scene (``get_renderer``) lets the
@@ -185,7 +185,7 @@ class Renderer:
         for (cams, part), s in zip(self._chunks(camera, poses, c), range(0, len(poses), c)):
             yield cams, part, self.pool.query_index(qi[s:s + c])
 
-    def _workspace(self, camera: Camera, batch: int, grad: bool = False) -> Workspace:
+    def workspace(self, camera: Camera, batch: int, grad: bool = False) -> Workspace:
         """The buffers for up to ``batch`` poses at ``camera``'s size and tiling (``grad``: the derivative pass's,
         ``RasterConfig.grad_tile_size``): one per size, reused by every call that fits and grown when one needs
         more (re-allocating per batch size cost more than the renders of a search expansion)."""
@@ -252,7 +252,7 @@ class Renderer:
         exist (``ws.images``), and the arguments an image blend starts with (``blend.image_func``'s, up to the
         number of poses). ``batch``: the workspace size (poses of the whole call, capped at one chunk)."""
         camera = cams[0]
-        ws = self._workspace(camera, batch)
+        ws = self.workspace(camera, batch)
         if ws.images is None:
             ws.images = ImageBuffers.allocate(ws.batch, camera.height, camera.width)
         self._geometry(cams, part, ws, background)
@@ -265,7 +265,7 @@ class Renderer:
         order of ``source_index`` (scene indices)."""
         out = []
         for cams, part in self._chunks(camera, poses):
-            ws = self._workspace(cams[0], min(len(poses), self.chunk))
+            ws = self.workspace(cams[0], min(len(poses), self.chunk))
             self._geometry(cams, part, ws, (0.0, 0.0, 0.0))
             out.append(read_rows(self.pool.records.ntiles, len(part)) > 0)
         return np.concatenate(out)
@@ -350,7 +350,7 @@ class Renderer:
                              f"({size.height}, {size.width}, 3)")
         out = []
         for cams, part in self._chunks(camera, poses):
-            ws = self._workspace(cams[0], min(len(poses), self.chunk))
+            ws = self.workspace(cams[0], min(len(poses), self.chunk))
             tx, ty = ws.tiles
             if ws.stats is None:
                 rows = ty if self.blend_mode == "splat" else cams[0].height
@@ -375,21 +375,14 @@ class Renderer:
         depend on the others of its launch."""
         return max(1, min(32 if current_arch() == "cuda" else 4, 4_000_000 // self.n))
 
-    def render_derivatives(self, camera: Camera | Sequence[Camera], poses: list[Pose], background=(0.0, 0.0, 0.0)):
-        """Colour [B, H, W, 3], alpha [B, H, W] and the colour's derivatives [B, H, W, 3, 6] with respect to the
-        pose increment ``xi = (w, v)`` (``Pose.perturbed_in_camera(w, v)``)."""
-        return derivatives.render_derivatives(self, camera, poses, background)
-
     def pose_gradient(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,
                       background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0, query_index=None):
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
         grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
-        :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``."""
+        :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``. (``render_derivatives`` and
+        ``pose_gradient_bands`` are ``PoseDerivatives``'.)"""
         _check_query_size(qstats, camera)
-        return derivatives.pose_gradient(self, camera, poses, qstats, background, mask_alpha, query_index)
-
-    #: the cs Hessian [6, 6] at one pose and its gradient per horizontal band of rows [bands, 6] (``derivatives``)
-    pose_gradient_bands = derivatives.pose_gradient_bands
+        return self.cs_gradient(camera, poses, qstats, background, mask_alpha, query_index)
 
 
 def _check_query_size(qstats, camera: Camera | Sequence[Camera]) -> None:

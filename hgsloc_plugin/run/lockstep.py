@@ -87,7 +87,7 @@ class Lockstep:
         self._unions: dict[tuple, tuple[list, Renderer]] = {}
         self._cond = threading.Condition()
         self._cancelled = False
-        self._slots: dict[tuple, _QuerySlots] = {}  # per image size
+        self._slots: dict[tuple, QuerySlots] = {}  # per image size
         self.launches = 0  # device calls served (a batched launch counts once)
         self.requests = 0  # device calls the queries made
         self.union_launches = 0  # launches rendered from the union of several working sets
@@ -234,7 +234,7 @@ class Lockstep:
         shape = tuple(stats[0].shape[1:])
         slots = self._slots.get(shape)
         if slots is None:  # one per image size, made once
-            slots = self._slots[shape] = _QuerySlots(SLOTS_PER_QUERY * self.batch_size, shape)
+            slots = self._slots[shape] = QuerySlots(SLOTS_PER_QUERY * self.batch_size, shape)
         poses = [p for c in calls for p in c["poses"]]
         args = {k: v for k, v in calls[0].items() if k not in ("self", "poses", "qstats", "query_index")}
         if any(c["camera"] != args["camera"] for c in calls):  # queries of other intrinsics: a camera per pose
@@ -255,7 +255,7 @@ class Lockstep:
             s.reply = (True, part)
 
 
-class _QuerySlots:
+class QuerySlots:
     """One image size's query statistics in the slots of one device array (``capacity`` of them, made on first
     use): each query's are copied in once and keep their slot while they are used, the least recently used
     giving way to new ones, so a launch over any group of live queries needs no new array and no copy of those

@@ -97,3 +97,34 @@ def test_dialect_registry_reads_every_registered_format(tmp_path):
     assert {"hloc", "ace", "marepo", "pgt", "generic", "cambridge", "cameras_json"} <= set(DIALECTS)
     with pytest.raises(ValueError, match="unknown dialect 'nope'"):
         read_poses(tmp_path / "h.txt", "nope")
+
+
+class ProtocolOnly:
+    """A renderer that offers exactly ``RendererLike``'s names (forwarded to a Renderer) and nothing else: what
+    a second backend must implement."""
+
+    NAMES = {k for k in vars(RendererLike) if not k.startswith("_")} | set(RendererLike.__annotations__)
+
+    def __init__(self, inner):
+        self._inner = inner
+
+    def __getattr__(self, name):
+        if name not in self.NAMES:
+            raise AttributeError(f"{name!r} is not part of RendererLike")
+        return getattr(self._inner, name)
+
+
+@pytest.mark.parametrize("settings", [{}, {"working_set_min": 0}, {"gradient_first": False}],
+                         ids=["default", "working set", "search"])
+def test_the_refinement_uses_only_the_renderer_protocol(settings):
+    """Through ``refine``, with a working set following the poses and on the search route, the refinement asks a
+    renderer for nothing ``RendererLike`` does not name: a backend with exactly those methods refines to the same
+    pose."""
+    assert {"full", "largest", "selections", "working_set", "pose_gradient_bands"} <= ProtocolOnly.NAMES
+    cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
+    config = hp.RefineConfig(**settings)
+    plain = hp.HGSLocPlugin(scene, config).refine(img, cam, prior)
+    other = hp.HGSLocPlugin(scene, config, renderer=ProtocolOnly(get_renderer(scene))).refine(img, cam, prior)
+    assert np.array_equal(other.pose.as_array(), plain.pose.as_array()) and other.renders == plain.renders
+    assert other.working_set == plain.working_set and other.working_set_selections == plain.working_set_selections

@@ -228,7 +228,6 @@ def _result(ctx: QueryContext, tried: list[tuple[Candidate, Verdict]], seconds: 
         max_shift=plan.max_shift, max_rotation_deg=plan.max_rotation_deg,
         prior_error=math.nan if plan.prior_error is None else plan.prior_error,
         prior_error_deg=math.nan if plan.prior_error_deg is None else plan.prior_error_deg,
-        working_set=renderer.largest if isinstance(renderer, WorkingSet) else renderer.n,
-        working_set_selections=renderer.selections if isinstance(renderer, WorkingSet) else 0,
+        working_set=renderer.largest, working_set_selections=renderer.selections,
         renders=ctx.scorer.renders + sum(p.renders for p in polish), seconds=seconds)
     return res

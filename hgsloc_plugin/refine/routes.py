@@ -17,7 +17,6 @@ from ..core.camera import Camera
 from ..core.pose import Pose
 from ..render import RendererLike
 from ..render.lod import coarse_lod
-from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan
 from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, PolishStats, polish
@@ -130,7 +129,7 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
             break
         is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
         cam_l = plan.cam_coarse if is_coarse else plan.cam_final
-        if is_coarse and lod is None and cfg.coarse_lod_pixels is not None and isinstance(exact, WorkingSet):
+        if is_coarse and lod is None and cfg.coarse_lod_pixels is not None and exact.full is not exact:
             lod = coarse_lod(exact.full, plan.cam_coarse, plan.coarse_pose, plan.max_shift, plan.max_rotation_deg,
                              cfg.coarse_lod_pixels)
         want = lod if is_coarse and lod is not None else exact

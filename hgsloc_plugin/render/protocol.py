@@ -26,6 +26,19 @@ class RendererLike(Protocol):
     def n(self) -> int:
         """Gaussians rendered."""
 
+    @property
+    def full(self) -> RendererLike:
+        """The renderer of the whole map this one renders from: itself, or the map under a selection that follows
+        the poses asked for (a working set)."""
+
+    @property
+    def largest(self) -> int:
+        """The most Gaussians one render used so far (a working set's largest selection; else ``n``)."""
+
+    @property
+    def selections(self) -> int:
+        """Selections of Gaussians made so far (a working set's; 0 for a renderer of fixed Gaussians)."""
+
     def upload_image(self, image: np.ndarray) -> object:
         """A comparison image [H, W, 3] float in [0, 1] on the device (for :meth:`cost_stats`)."""
 

@@ -74,6 +74,21 @@ class Renderer(PoseDerivatives):
         return self.gaussians.n
 
     @property
+    def full(self) -> Renderer:
+        """The renderer of the whole set this one renders from (``RendererLike``): itself."""
+        return self
+
+    @property
+    def largest(self) -> int:
+        """The most Gaussians one of its renders used (``RendererLike``): all of them."""
+        return self.n
+
+    @property
+    def selections(self) -> int:
+        """Selections of Gaussians made while rendering (``RendererLike``): none."""
+        return 0
+
+    @property
     def source_index(self) -> np.ndarray:
         """[n]: scene index of each resident Gaussian (-1: none)."""
         return self.gaussians.source_index

@@ -108,10 +108,10 @@ def write_transforms_json(path, poses, like: PoseFile) -> Path:
 
 def transforms_cameras(path, *, allow_distortion: bool = False) -> dict[str, Camera]:
     """canonical image name -> Camera at the size the file gives (``w``, ``h``), from its shared or per-frame
-    intrinsics. Distortion coefficients become the camera's :class:`~hgsloc_plugin.core.camera.Distortion` (OpenCV's
-    ``k1 k2 p1 p2``, with ``k3 k4`` FULL_OPENCV, ``is_fisheye`` OPENCV_FISHEYE's ``k1..k4``): the refiner undistorts
-    each photo; all zero, or ``allow_distortion`` (the images are already undistorted), a pinhole camera.
-    ``intrinsics.from_query_list`` scales them to each image's size."""
+    intrinsics. Distortion coefficients become the camera's :class:`~hgsloc_plugin.core.camera.Distortion`
+    (OpenCV's ``k1 k2 p1 p2``, with ``k3 k4`` FULL_OPENCV, ``is_fisheye`` OPENCV_FISHEYE's ``k1 k2 k3 k4``): the
+    refiner undistorts each photo; all zero, or ``allow_distortion`` (the images are already undistorted), a pinhole
+    camera. ``intrinsics.from_query_list`` scales them to each image's size."""
     path = Path(path)
     data = _load(path)
     table = {}

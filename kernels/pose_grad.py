@@ -4,7 +4,7 @@ Pose increment ``xi = (w, v)`` [6] (rotation vector, then translation): a left p
 
     R' = Exp(w) R,   t' = Exp(w) t + v,   so   p_c' = p_c + w x p_c + v + O(|xi|^2)
 
-(the axes of the search's lattice, turning about the camera centre). ``hgsloc_plugin.pose_update`` applies it.
+(the axes of the search's lattice, turning about the camera centre). ``Pose.perturbed_in_camera`` applies it.
 
 Three steps, run in turn by one launch (:func:`derivative_images_kernel`) after the projection and tile sort of the
 same poses (they read its ``packed`` records, ``ntiles`` and tile lists):

@@ -1,4 +1,4 @@
-"""The ``hgsloc`` commands, one function each (``cmd_*(args) -> exit code``); ``cli.py`` parses the command line."""
+"""The ``hgsloc`` commands, one function each (``cmd_*(args) -> exit code``); ``parser.py`` parses the command line."""
 
 from __future__ import annotations
 

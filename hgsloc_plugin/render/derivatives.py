@@ -4,7 +4,7 @@ and the cs cost's gradient.
 ``xi = (w, v)`` is the increment of ``Pose.perturbed_in_camera(w, v)`` (rotation, then camera-frame shift). The
 kernels are ``kernels/pose_grad.py`` (per-Gaussian derivative records, derivative blending) and
 ``kernels/window_grad.py`` (the windowed cs cost's gradient and Gauss-Newton system). :class:`PoseDerivatives`
-uses the renderer's own workspaces, geometry pass and batching (``Renderer._workspace``, ``_geometry``,
+uses the renderer's own workspaces, geometry pass and batching (``Renderer.workspace``, ``_geometry``,
 ``_chunks``, ``_query_parts``): it is the renderer's derivative half, kept in a module of its own.
 """
 
@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import taichi as ti
 
+from ..core.backend import current_arch
 from ..core.camera import Camera
 from ..core.costs import cost_from_window
 from ..core.pose import Pose
@@ -24,6 +25,13 @@ from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 
 class PoseDerivatives:
     """The renderer's pose-derivative methods (``Renderer`` inherits them); ``self`` is the renderer."""
+
+    @property
+    def grad_chunk(self) -> int:
+        """Poses per derivative launch (the per-Gaussian derivative records take 30 floats per pose): at most 4
+        on the CPU, 32 on CUDA (the derivative passes of a lockstep batch in one launch); a pose's numbers do not
+        depend on the others of its launch."""
+        return max(1, min(32 if current_arch() == "cuda" else 4, 4_000_000 // self.n))
 
     def derivative_workspace(self, camera: Camera, batch: int) -> DerivativeWorkspace:
         """The derivative pass's image-sized buffers at ``camera``'s size (grown when ``batch`` needs more), with the

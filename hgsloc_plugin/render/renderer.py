@@ -73,20 +73,15 @@ class Renderer(PoseDerivatives):
         """Resident Gaussians."""
         return self.gaussians.n
 
+    #: ``RendererLike``'s selections made while rendering: none (its Gaussians are fixed)
+    selections = 0
+
     @property
     def full(self) -> Renderer:
-        """The renderer of the whole set this one renders from (``RendererLike``): itself."""
+        """``RendererLike``'s renderer of the whole set this one renders from: itself (``largest``: ``n``)."""
         return self
 
-    @property
-    def largest(self) -> int:
-        """The most Gaussians one of its renders used (``RendererLike``): all of them."""
-        return self.n
-
-    @property
-    def selections(self) -> int:
-        """Selections of Gaussians made while rendering (``RendererLike``): none."""
-        return 0
+    largest = n
 
     @property
     def source_index(self) -> np.ndarray:
@@ -381,14 +376,7 @@ class Renderer(PoseDerivatives):
             out.append(stats)
         return np.concatenate(out)
 
-    # ---- pose derivatives (``render/derivatives.py``) ----
-
-    @property
-    def grad_chunk(self) -> int:
-        """Poses per derivative launch (the per-Gaussian derivative records take 30 floats per pose): at most 4
-        on the CPU, 32 on CUDA (the derivative passes of a lockstep batch in one launch); a pose's numbers do not
-        depend on the others of its launch."""
-        return max(1, min(32 if current_arch() == "cuda" else 4, 4_000_000 // self.n))
+    # ---- pose derivatives (the rest in ``render/derivatives.py``) ----
 
     def pose_gradient(self, camera: Camera | Sequence[Camera], poses: list[Pose], qstats: ti.Ndarray,
                       background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0, query_index=None):

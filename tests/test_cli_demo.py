@@ -251,7 +251,7 @@ def test_cli_refine_writes_figures(tiny_case, tmp_path):
                  str(d / "images"), "--focal", "90", "--out", str(tmp_path / "r.txt"), "--config", "fast",
                  "--limit", "1", "--quiet", "--figures", str(figs)]) == 0
     pngs = list(figs.glob("*.png"))
-    assert len(pngs) == 1 and pngs[0].name == "seq-01_frame-000000.color.png"  # not .png.png
+    assert len(pngs) == 1 and pngs[0].name == "seq-01-frame-000000.color.png"  # not .png.png
     assert min(Image.open(pngs[0]).size) > 2 * 96 * 0.9  # four panels of the 128x96 query
 
 

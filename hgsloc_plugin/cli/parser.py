@@ -44,14 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "output folder (latest iteration, background from cfg_args)")
     r.add_argument("--poses", required=True, help="input pose file")
     r.add_argument("--images", required=True, help="folder with the query images")
-    r.add_argument("--focal", type=float, help="one focal length, principal point at the centre")
-    r.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt, a NeRF transforms.json or a "
-                                         "trainer's cameras.json")
-    r.add_argument("--colmap", help="COLMAP model folder")
-    r.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
-    r.add_argument("--allow-distortion", action="store_true",
-                   help="the photos are already undistorted: drop the intrinsics' distortion coefficients (by "
-                        "default each photo with distortion is undistorted to a pinhole camera first)")
+    add_intrinsics_flags(r)
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
     r.add_argument("--config", default="default", help=PRESET_HELP)
     r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
@@ -91,13 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--scene", required=True, help="3DGS .ply or a trainer's output folder")
     c.add_argument("--poses", required=True, help="pose file (any dialect) or a trainer's cameras.json")
     c.add_argument("--images", required=True, help="folder with the query images")
-    c.add_argument("--focal", type=float)
-    c.add_argument("--intrinsics", help="HLoc queries_with_intrinsics.txt, a NeRF transforms.json or a "
-                                         "trainer's cameras.json")
-    c.add_argument("--colmap", help="COLMAP model folder")
-    c.add_argument("--pgt-focal", help="pGT file whose 9th column is the focal")
-    c.add_argument("--allow-distortion", action="store_true",
-                   help="the photos are already undistorted: drop the intrinsics' distortion coefficients")
+    add_intrinsics_flags(c)
     c.add_argument("--white-background", action="store_true")
     c.add_argument("--sample", type=positive_count_arg, default=8, help="queries to render (evenly spaced)")
     c.add_argument("--figures", help="write query | rendering images here")
@@ -134,11 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--out", required=True, help="the perturbed pose file")
     n.add_argument("--scene", help="3DGS map, for --noise P%%,Rdeg")
     n.add_argument("--images", help="folder with the query images, for --noise P%%,Rdeg")
-    n.add_argument("--focal", type=float, help="for --noise P%%,Rdeg: one focal length, centred principal point")
-    n.add_argument("--intrinsics", help="for --noise P%%,Rdeg: a query list, transforms.json or camera JSON")
-    n.add_argument("--colmap", help="for --noise P%%,Rdeg: a COLMAP model folder")
-    n.add_argument("--pgt-focal", help="for --noise P%%,Rdeg: a pGT file whose 9th column is the focal")
-    n.add_argument("--allow-distortion", action="store_true", help=argparse.SUPPRESS)
+    add_intrinsics_flags(n, "for --noise P%%,Rdeg: ")
     n.set_defaults(func=cmd_perturb)
 
     m = sub.add_parser("demo", help="run the whole chain on the embedded procedural room")
@@ -149,6 +132,19 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--quiet", action="store_true")
     m.set_defaults(func=cmd_demo)
     return ap
+
+
+def add_intrinsics_flags(p: argparse.ArgumentParser, use: str = "") -> None:
+    """The flags naming where the queries' intrinsics come from (the user gives one), for every command that
+    needs them: refine, check, perturb; ``use`` starts each help text."""
+    p.add_argument("--focal", type=float, help=use + "one focal length, principal point at the centre")
+    p.add_argument("--intrinsics", help=use + "HLoc queries_with_intrinsics.txt, a NeRF transforms.json, a trainer's "
+                                              "cameras.json or a camera JSON (width height fx fy cx cy)")
+    p.add_argument("--colmap", help=use + "COLMAP model folder")
+    p.add_argument("--pgt-focal", help=use + "pGT file whose 9th column is the focal")
+    p.add_argument("--allow-distortion", action="store_true",
+                   help=use + "the photos are already undistorted: drop the intrinsics' distortion coefficients (by "
+                              "default each photo with distortion is undistorted to a pinhole camera first)")
 
 
 RENDERING_COMMANDS = (cmd_refine, cmd_render, cmd_demo, cmd_check)

@@ -83,24 +83,15 @@ def within(e: np.ndarray, cm: float, deg: float) -> float:
 
 
 @contextlib.contextmanager
-def route_verdicts():
-    """While inside, each judged route of a refinement is appended to the yielded list as (route name, pose,
-    refusal reason or None, plan) (wraps ``Refiner._judged``; behaviour unchanged)."""
-    from hgsloc_plugin.refine import refiner as refiner_mod
-
+def route_verdicts(refiner):
+    """While inside, each judged route of ``refiner``'s refinements is appended to the yielded list as (route
+    name, pose, refusal reason or None, plan), through its trace hook (``Refiner.on_judged``)."""
     routes: list = []
-    judged = refiner_mod.Refiner._judged
-
-    def recording(self, ctx, cand):
-        out = judged(self, ctx, cand)
-        routes.append((cand.route, cand.pose, out[1].rejected, ctx.plan))
-        return out
-
-    refiner_mod.Refiner._judged = recording
+    refiner.on_judged = lambda cand, verdict, plan: routes.append((cand.route, cand.pose, verdict.rejected, plan))
     try:
         yield routes
     finally:
-        refiner_mod.Refiner._judged = judged
+        refiner.on_judged = None
 
 
 def outcome(routes: list) -> tuple[str, str] | None:
@@ -151,7 +142,7 @@ def run(name: str, n: int, config: hp.RefineConfig, rows: list[str] | None = Non
         e0, e1, ren, searched = [], [], [], 0
         t0 = time.perf_counter()
         for g, img, p, s in zip(gts, imgs, ps, scale):
-            with route_verdicts() as routes:
+            with route_verdicts(refiner) as routes:
                 r = refiner.refine(img, cam, p)
             went = outcome(routes)
             if outcomes is not None and went is not None:
@@ -185,7 +176,7 @@ def agreement(name: str, n: int, rows: list[str] | None) -> list[str]:
         if row not in (rows or AGREEMENT_ROWS):
             continue
         for k, (g, img, p, s) in enumerate(zip(gts, imgs, ps, scale)):
-            with route_verdicts() as routes:
+            with route_verdicts(refiner) as routes:
                 r = refiner.refine(img, cam, p)
             if len(routes) < 3:
                 continue

@@ -10,6 +10,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ..core.camera import Camera
@@ -58,6 +59,9 @@ class Refiner:
         self.config = config or RefineConfig()
         self.raster = raster or RasterConfig()
         self.renderer = renderer if renderer is not None else get_renderer(scene, self.raster)
+        #: a trace hook for measurements (benchmarks): called as ``on_judged(candidate, verdict, plan)`` after the
+        #: acceptance rule judged each route's candidate, in the order they ran; None: nothing is called
+        self.on_judged: Callable[[Candidate, Verdict, Plan], None] | None = None
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
                prior: QueryPrior | None = None, **settings: float | None) -> RefineResult:
@@ -125,9 +129,12 @@ class Refiner:
     def _judged(self, ctx: QueryContext, cand: Candidate, structural: bool = True) -> tuple[Candidate, Verdict]:
         """``cand`` and the rule's verdict on it; ``structural`` False: without the alignment test."""
         cfg = self.config
-        return cand, judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
-                           lattice=cfg.neighbourhood == "lattice",
-                           structural=structural and METRICS[cfg.metric].structural, pivot=cfg.pivot, name=ctx.name)
+        verdict = judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
+                        lattice=cfg.neighbourhood == "lattice",
+                        structural=structural and METRICS[cfg.metric].structural, pivot=cfg.pivot, name=ctx.name)
+        if self.on_judged is not None:
+            self.on_judged(cand, verdict, ctx.plan)
+        return cand, verdict
 
     def _working_set(self, plan: Plan) -> RendererLike:
         """The renderer the routes use: a :class:`WorkingSet` that follows the poses scored (region radius

@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
        python benchmarks/map_scale.py --stages [--k 1 20]
+       python benchmarks/map_scale.py --footprints [--k 1 20] [--queries 3]
 
 The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
 shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
@@ -166,6 +167,36 @@ def stages(k: int) -> str:
             f"{full - geometry:.1f} | {select:.1f} |")
 
 
+def footprints(k: int, queries: int) -> list[str]:
+    """Markdown rows: on the room densified ``k`` times, at each scoring size (longer side 100, 200, 320 px), the
+    Gaussians in view of the query poses (centres in front, within the image and 20 px around it) and the share
+    whose largest standard deviation projects to under 0.5 and 1 px: what a level-of-detail cut at that size could
+    merge (means over the queries)."""
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+
+    room = make_room_scene()
+    scene = densify(room, k) if k > 1 else room
+    smax = scene.scales.max(axis=1).astype(np.float64)
+    rows = []
+    for side in (100, 200, 320):
+        cam = QUERY_CAMERA.with_max_side(side) if side < max(QUERY_CAMERA.width, QUERY_CAMERA.height) else QUERY_CAMERA
+        seen, half, one = [], [], []
+        for T in query_poses(queries, seed=1):
+            p = scene.means.astype(np.float64) @ T.R.T + T.tvec
+            z = np.maximum(p[:, 2], 1e-6)
+            u, v = cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy
+            vis = (p[:, 2] > 0.05) & (u > -20) & (u < cam.width + 20) & (v > -20) & (v < cam.height + 20)
+            px = smax[vis] * cam.fx / z[vis]
+            seen.append(int(vis.sum()))
+            half.append(float(np.mean(px < 0.5)))
+            one.append(float(np.mean(px < 1.0)))
+        rows.append(f"| {scene.num_gaussians:,} | {cam.width}x{cam.height} | {np.mean(seen):,.0f} | "
+                    f"{100 * np.mean(half):.0f} % | {100 * np.mean(one):.0f} % |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--k", nargs="+", type=int, default=[1, 4, 10, 20])
@@ -175,8 +206,15 @@ def main() -> None:
     ap.add_argument("--paths", nargs="+", default=list(DEFAULT_PATHS), choices=list(PATHS), metavar="PATH",
                     help=f"paths to compare, the first is the speed-up reference (any of {list(PATHS)})")
     ap.add_argument("--stages", action="store_true", help="only split one render's time by stage at each --k")
+    ap.add_argument("--footprints", action="store_true",
+                    help="only the share of the Gaussians in view under 0.5 / 1 px at each scoring size, per --k")
     ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.footprints:
+        print("| Gaussians | scoring size | in view | sigma < 0.5 px | < 1 px |\n|---|---|---|---|---|", flush=True)
+        for k in a.k:
+            print("\n".join(footprints(k, a.queries)), flush=True)
+        return
     if a.stages:
         print("| Gaussians | rendered (working set) | visible | tile-list entries | footprint pixels per pixel | "
               "render (ms) | projection | tile sort | blending (and read-back) | selection (ms) |\n"

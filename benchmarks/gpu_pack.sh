@@ -5,8 +5,8 @@
 #                      (without its C API library, 20 MB the Python package does not load), dill, plyfile, and
 #                      gsplat 1.5.3's Python files (the tests' reference projection is its pure-PyTorch code; its
 #                      wheel's CUDA sources are left out);
-#   .gpu/data.tar.xz   what the checks read of ../shared/data: snow (not its holdout), lego, the scenes, and the
-#                      ACE, Marepo and pseudo ground truth pose files of 7-Scenes (the 7-Scenes-shaped priors).
+#   .gpu/data.tar.xz   what the checks read of ../shared/data, named file by file: the snow photos and maps, lego,
+#                      the scenes, and the ACE, Marepo and pseudo ground truth pose files of 7-Scenes.
 # gpu_setup.sh unpacks them there when it finds .gpu/ (carry [".gpu"], command "bash benchmarks/gpu_check.sh $OUT").
 # Ray is not packed (its wheel alone is 72 MB): the Ray rows of gpu_check's scale step are skipped there.
 # Usage (here, with pip's index reachable): bash benchmarks/gpu_pack.sh
@@ -32,7 +32,8 @@ poses=()
 for d in "$data"/poses/7scenes/*/; do
   for f in ace.txt marepo.txt pgt_sfm_test.txt; do poses+=("poses/7scenes/$(basename "$d")/$f"); done
 done
-tar -C "$data" --exclude=holdout -cJf .gpu/data.tar.xz snow lego scenes "${poses[@]}"
+snow=(snow/camera.json snow/gt.txt snow/queries snow/snow.ply snow/snow_sharp.ply)
+tar -C "$data" -cJf .gpu/data.tar.xz "${snow[@]}" lego scenes "${poses[@]}"
 tree_bytes=$(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1)
 pack_bytes=$(du -cb .gpu | tail -1 | cut -f1)
 limit=$((64 * 1024 * 1024))

@@ -66,14 +66,14 @@ def room_query(cam, pose_seed: int, noise_deg: float, noise_shift: float, noise_
                                                           np.random.default_rng(noise_seed))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")  # tests/ is one package: read once per run
 def donut():
     from hgsloc_plugin import GaussianScene
 
     return GaussianScene.from_ply(shared_path("scenes", "donut.ply"))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")  # tests/ is one package: read once per run
 def small_sh3():
     from hgsloc_plugin import GaussianScene
 

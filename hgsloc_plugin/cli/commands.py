@@ -59,14 +59,14 @@ def cmd_refine(args) -> int:
     scene, pf = inputs = _inputs(args)
     intrinsics = _intrinsics(args)  # read once (a COLMAP model, a query list) for the check and the refinement
     refiner = HGSLocPlugin(scene, config)
-    resumable(refiner, pf, Path(args.out), args.restart)  # a resume of other inputs is refused before any work
+    previous = resumable(refiner, pf, Path(args.out), args.restart)  # other inputs: refused before any work
     if not args.skip_check:  # refining poses in another frame or convention would return nonsense
         rep = _check(args, 4, inputs=inputs, intrinsics=intrinsics)
         if not rep.agrees:
             raise ValueError(f"check failed: {rep.message()} (run 'hgsloc check' for details; --skip-check "
                              "refines anyway)")
-    rep = refine_pose_file(refiner, pf, Path(args.images), intrinsics, Path(args.out),
-                           config=config, limit=args.limit, gt_variant=args.gt_variant,
+    rep = refine_pose_file(refiner, pf, Path(args.images), intrinsics, Path(args.out), previous=previous,
+                           limit=args.limit, gt_variant=args.gt_variant,
                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet,
                            workers=args.workers, ray_address=args.ray_address, batch_size=args.batch_size,
                            inlier_region=not args.no_inlier_region, restart=args.restart)

@@ -11,11 +11,13 @@ record, intrinsics, photo bytes, trust region) are the ones it was computed from
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..adapters.confidence import hloc_trust, inlier_trust, record_inliers
@@ -153,13 +155,26 @@ _FINGERPRINT_WORDS = {"scene": "the map's content (--scene)", "config": "the ref
                       "its flags)", "raster": "the renderer's settings", "dialect": "the pose file's format"}
 
 
-def _previous(output: Path, fp: dict[str, str], restart: bool, restart_flag: str) -> tuple[dict[str, dict], float]:
-    """(name -> an earlier run's entry, the earlier runs' wall seconds) from the report beside ``output``, when
-    it was made with the fingerprint ``fp``; empty with ``restart`` or without a report. A report of other inputs
-    is a ValueError naming what differs (nothing is touched)."""
+@dataclass(frozen=True)
+class Previous:
+    """What a run resumes: its inputs' ``fingerprint``, the earlier run's ``entries`` (name -> report entry; empty
+    when there is none or on a restart) and the earlier runs' ``wall_seconds``."""
+
+    fingerprint: dict[str, str]
+    entries: dict[str, dict]
+    wall_seconds: float
+
+
+def resumable(refiner: HGSLocPlugin, pf: PoseFile, output: Path, restart: bool = False,
+              restart_flag: str = "--restart") -> Previous:
+    """The earlier run in ``output`` that this one resumes (see :class:`Previous`; ``restart``: none); a report of
+    other inputs is a ValueError naming what differs and ``restart_flag`` (nothing is touched). A command calls it
+    to refuse before any other work and passes the result to ``refine_pose_file``."""
+    output = Path(output)
+    fp = fingerprint(refiner, pf)
     old = None if restart else read_report(output)
     if old is None:
-        return {}, 0.0
+        return Previous(fp, {}, 0.0)
     before = old.get("fingerprint")
     changed = [k for k in fp if not isinstance(before, dict) or before.get(k) != fp[k]]
     if changed:
@@ -167,14 +182,7 @@ def _previous(output: Path, fp: dict[str, str], restart: bool, restart_flag: str
                 else "other " + ", ".join(_FINGERPRINT_WORDS[k] for k in changed))
         raise ValueError(f"{report_path(output)}: an earlier run into {output} used {what}; its results are not "
                          f"these inputs': rerun with {restart_flag} to start over, or give another output")
-    return dict(old.get("queries", {})), float((old.get("totals") or {}).get("wall_seconds") or 0.0)
-
-
-def resumable(refiner: HGSLocPlugin, pf: PoseFile, output: Path, restart: bool = False,
-              restart_flag: str = "--restart") -> None:
-    """A ValueError naming what differs when ``output`` holds an earlier run of other inputs (``restart``: none);
-    what ``refine_pose_file`` checks first, for a command to refuse before any other work."""
-    _previous(Path(output), fingerprint(refiner, pf), restart, restart_flag)
+    return Previous(fp, dict(old.get("queries", {})), float((old.get("totals") or {}).get("wall_seconds") or 0.0))
 
 
 def _prepare(pf: PoseFile, name: str, images: Path, intrinsics: Callable[[str, int, int], Camera],
@@ -188,7 +196,7 @@ def _prepare(pf: PoseFile, name: str, images: Path, intrinsics: Callable[[str, i
     try:
         img_path = resolve_image(name, images)
         data = img_path.read_bytes()
-        with Image.open(img_path) as im:
+        with Image.open(io.BytesIO(data)) as im:  # the bytes read once: the size and the digest
             w, h = im.size
         cam, prior = intrinsics(name, w, h), region_of(name)
     except Exception as exc:  # one bad query never stops the run
@@ -243,7 +251,7 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
                      save_every: int = 10, settings: dict | None = None, workers: int = 0,
                      ray_address: str | None = None, inlier_region: bool = True,
                      batch_size: int | None = None, expect_hloc_log: bool = False, restart: bool = False,
-                     flags: dict[str, str] | None = None) -> dict:
+                     flags: dict[str, str] | None = None, previous: Previous | None = None) -> dict:
     """Refine the poses in ``poses`` and write ``output`` (same dialect) and ``output + '.json'``.
 
     Args:
@@ -266,6 +274,8 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
             refused).
         flags: how the caller spells its options in messages: ``{"restart": "--restart", "allow_distortion":
             "--allow-distortion"}`` (``hgsloc refine``'s, the default).
+        previous: what :func:`resumable` returned for this ``scene`` (a ready refiner), ``poses`` and ``output``
+            when the caller checked it already (None: checked here).
 
     Returns:
         The report dict (also written as JSON; ``"complete"`` says whether the pose file was written).
@@ -281,8 +291,9 @@ def refine_pose_file(scene: GaussianScene | str | Path | HGSLocPlugin, poses: Pa
         raise FileNotFoundError(f"{images}: image folder not found")
     pf = pf if pf is not None else read_poses(poses, dialect)
     refiner = scene if isinstance(scene, HGSLocPlugin) else HGSLocPlugin(scene, config)
-    fp = fingerprint(refiner, pf)
-    previous, wall_before = _previous(output, fp, restart, flags["restart"])
+    if previous is None:
+        previous = resumable(refiner, pf, output, restart, flags["restart"])
+    fp, wall_before, previous = previous.fingerprint, previous.wall_seconds, previous.entries
     names = list(pf)[: limit if limit is not None else None]
     report = {
         "complete": False, "input": str(poses), "output": str(output), "dialect": pf.dialect,

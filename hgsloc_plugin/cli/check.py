@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import Camera
+from ..core.costs import cost_from_window
 from ..core.image import load_image, undistort
 from ..core.pose import Pose
 from ..core.scene import GaussianScene
@@ -249,7 +250,7 @@ def covered_cost(sums: np.ndarray, cover: float) -> np.ndarray:
     """The check's cost of poses [B] from their windowed cs sums [B, 2] (similarity sum, pixels compared): one less
     the mean similarity over at least ``cover`` pixels (the pixels a pose does not render count as unrelated)."""
     sums = np.asarray(sums, np.float64)
-    return 1.0 - sums[:, 0] / np.maximum(np.maximum(sums[:, 1], cover), 1.0)
+    return cost_from_window(np.column_stack([sums[:, 0], np.maximum(sums[:, 1], cover)]))
 
 
 def _aligned_costs(scene: GaussianScene, poses: Mapping[str, Pose], names: list[str], data: list,

@@ -30,7 +30,7 @@ from hgsloc_plugin.core.fileio import atomic_write_bytes  # noqa: E402
 from hgsloc_plugin.evaluation.noise import apply_protocol  # noqa: E402
 
 HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
-CS_MODES = {"search only": hp.RefineConfig(polish=False), "search + polish": hp.RefineConfig.preset("search"),
+CS_MODES = {"search only": hp.RefineConfig(routes="lattice"), "search + polish": hp.RefineConfig.preset("search"),
             "gradient only": hp.RefineConfig.preset("gradient"), "gradient first (default)": hp.RefineConfig()}
 
 

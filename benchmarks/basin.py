@@ -23,7 +23,7 @@ accepted, the wide search accepted or refused, no wide search), per refusal reas
 ``--agreement``: every query whose usual search is refused, with the wide search run whatever the routes found
 (``same_minimum_pixels=0``): the gradient route's and the search's refusal reasons, how far apart their poses are
 (image motion at the final size), and what the wide search returned (the evidence for
-``RefineConfig.same_minimum_pixels``). Default rows: 1, 15, 30, 40, 60 cm-eq and DFNet's tail.
+``Tuning.same_minimum_pixels``). Default rows: 1, 15, 30, 40, 60 cm-eq and DFNet's tail.
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ def agreement(name: str, n: int, rows: list[str] | None) -> list[str]:
     if case is None:
         return []
     _, scene, cam, gts, imgs, scale, bg = case
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg, same_minimum_pixels=0.0))
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", background=bg, same_minimum_pixels=0.0))
     lines = []
     for row, ps in priors(gts, scale).items():
         if row not in (rows or AGREEMENT_ROWS):
@@ -198,7 +198,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--queries", type=int, default=6)
-    ap.add_argument("--wide", help="RefineConfig.wide_step_pixels, e.g. 16,8, or 'off' (default: the default "
+    ap.add_argument("--wide", help="Tuning.wide_step_pixels, e.g. 16,8, or 'off' (default: the default "
                                    "config's)")
     ap.add_argument("--rows", nargs="+", help="only these rows (e.g. '30 cm-eq / 8 deg')")
     ap.add_argument("--out", type=Path, help="also write the tables as Markdown here")
@@ -212,7 +212,7 @@ def main() -> None:
             agreement(c, a.queries, a.rows)
         return
     wide = () if a.wide == "off" else tuple(float(x) for x in a.wide.split(",")) if a.wide else None
-    config = hp.RefineConfig(**({"wide_step_pixels": wide} if wide is not None else {}))
+    config = hp.RefineConfig.preset("default", **({"wide_step_pixels": wide} if wide is not None else {}))
     arch = hp.init()
     t0 = time.perf_counter()
     lines, outcomes = [], {}

@@ -9,15 +9,15 @@ shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the un
 is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
 process so that its peak memory (max RSS) is its own. Paths (``--paths``; default: the first two and the last):
 - ``whole map, search``: the lattice search + polish, every render projecting, sorting and blending the whole map
-  (``RefineConfig(working_set=False, gradient_first=False)``);
+  (``RefineConfig(working_set=False, routes="search")``);
 - ``working set, search``: the same search on the Gaussians some pose near the poses scored can see
   (``working_set.WorkingSet``: a region of ``working_set_pixels`` around the first poses scored, selected again
   when the search leaves it; ``kernels/cull.py``); forced at every size here (the default: from
   ``working_set_min``);
 - ``working set + coarse LOD, search``: the same, and the coarse (pyramid) levels render a level of detail with
-  Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``RefineConfig.coarse_lod_pixels=2``; opt-in).
+  Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``Tuning.coarse_lod_pixels=2``; opt-in).
 - ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
-  refused (``RefineConfig.gradient_first``); ``working set + coarse LOD, gradient first``: the same with the
+  refused (``RefineConfig.routes``); ``working set + coarse LOD, gradient first``: the same with the
   coarse LOD above.
 
 Before the timed queries, each process refines the first query once untimed (kernel compilation or loading
@@ -52,11 +52,11 @@ sys.path.insert(0, str(ROOT))
 
 # path -> RefineConfig fields (the first is the reference of the speed-up column)
 PATHS = {
-    "whole map, search": dict(working_set=False, gradient_first=False),
-    "working set, search": dict(working_set=True, gradient_first=False),
-    "working set + coarse LOD, search": dict(working_set=True, gradient_first=False, coarse_lod_pixels=2.0),
-    "working set, gradient first": dict(working_set=True, gradient_first=True),
-    "working set + coarse LOD, gradient first": dict(working_set=True, gradient_first=True, coarse_lod_pixels=2.0),
+    "whole map, search": dict(working_set=False, routes="search"),
+    "working set, search": dict(working_set=True, routes="search"),
+    "working set + coarse LOD, search": dict(working_set=True, routes="search", coarse_lod_pixels=2.0),
+    "working set, gradient first": dict(working_set=True, routes="gradient_first"),
+    "working set + coarse LOD, gradient first": dict(working_set=True, routes="gradient_first", coarse_lod_pixels=2.0),
 }
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
@@ -80,7 +80,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     priors = [apply_protocol(g, noise, rng) for g in gts]
     scene = densify(room, k)
     del room
-    cfg = hp.RefineConfig(working_set_min=0, **PATHS[path])  # a working set, when on, at every size
+    cfg = hp.RefineConfig.preset("default", working_set_min=0, **PATHS[path])  # a working set, when on, at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = make_plan(cfg, scene, cam, priors[0], hp.QueryPrior())
@@ -150,7 +150,7 @@ def stages(k: int) -> str:
             times.append(time.perf_counter() - t0)
         return 1000 * float(np.median(times))
 
-    wset = hp.HGSLocPlugin(scene, hp.RefineConfig(working_set_min=0))._working_set(plan)
+    wset = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0))._working_set(plan)
     select = ms(lambda: wset.full.working_set(wset.cameras, prior, wset.radius_shift, wset.radius_rotation_deg))
     full = ms(lambda: r.render_full(cam, [prior], bg))
     geometry = ms(lambda: r._geometry(cam, [prior], ws, bg))

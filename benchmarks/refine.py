@@ -40,7 +40,7 @@ from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
 from hgsloc_plugin.render import get_renderer  # noqa: E402
 
 MODES = {
-    "search only": hp.RefineConfig(polish=False),
+    "search only": hp.RefineConfig(routes="lattice"),
     "search + polish": hp.RefineConfig.preset("search"),
     "gradient only": hp.RefineConfig.preset("gradient"),
     "gradient first, then search (default)": hp.RefineConfig(),

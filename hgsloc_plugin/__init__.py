@@ -15,7 +15,7 @@ from .core.pose import Pose  # noqa: E402
 from .core.prior import QueryPrior  # noqa: E402
 from .core.scene import GaussianScene  # noqa: E402
 from .kernels import RasterConfig  # noqa: E402
-from .refine import RefineConfig, RefineResult  # noqa: E402
+from .refine import RefineConfig, RefineResult, Tuning  # noqa: E402
 from .render import Renderer, render, render_cost, render_full  # noqa: E402
 from .run.plugin import HGSLocPlugin  # noqa: E402
 
@@ -29,6 +29,7 @@ __all__ = [
     "RefineConfig",
     "RefineResult",
     "Renderer",
+    "Tuning",
     "current_arch",
     "init",
     "render",

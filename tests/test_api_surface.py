@@ -3,7 +3,7 @@
 import hgsloc_plugin
 
 EXPECTED = ["Camera", "GaussianScene", "HGSLocPlugin", "Pose", "QueryPrior", "RasterConfig", "RefineConfig",
-            "RefineResult", "Renderer", "current_arch", "init", "render", "render_cost", "render_full"]
+            "RefineResult", "Renderer", "Tuning", "current_arch", "init", "render", "render_cost", "render_full"]
 
 
 def test_all_names_import_and_match():

@@ -112,4 +112,4 @@ def test_refine_with_coarse_lod_scores_fine_levels_on_the_exact_map():
     assert float(s([r.search_pose])[0]) == pytest.approx(r.search_cost, abs=1e-9)
     assert r.accepted and r.pose.errors_to(gt)[0] < 0.3 * prior.errors_to(gt)[0]
     with pytest.raises(ValueError, match="coarse_lod_pixels"):
-        hp.RefineConfig(coarse_lod_pixels=-1.0)
+        hp.Tuning(coarse_lod_pixels=-1.0)

@@ -88,7 +88,7 @@ def test_a_resume_of_other_inputs_is_refused_and_changed_queries_are_recomputed(
     # --restart starts over on other settings
     restarted = hgsloc(*[a if a != "fast" else "gradient" for a in refine_args(d, out)], "--restart")
     assert restarted.returncode == 0, restarted.stderr
-    assert report(out)["resumed"] is None and report(out)["config"]["search"] is False
+    assert report(out)["resumed"] is None and report(out)["config"]["routes"] == "gradient"
 
 
 INTERRUPT_AFTER_FIRST = """

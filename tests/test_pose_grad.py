@@ -305,7 +305,7 @@ def test_refine_reports_polish_and_gradient_preset():
     img = degrade(hp.render(scene, cam, gt), np.random.default_rng(0))
     prior = gt.perturbed_in_camera(np.radians([0.5, -0.4, 0.3]), [0.02, -0.01, 0.01])
     res = {}
-    for name, cfg in (("search", hp.RefineConfig(polish=False)), ("default", hp.RefineConfig.preset("search")),
+    for name, cfg in (("search", hp.RefineConfig(routes="lattice")), ("default", hp.RefineConfig.preset("search")),
                       ("gradient", hp.RefineConfig.preset("gradient")), ("first", hp.RefineConfig())):
         res[name] = hp.HGSLocPlugin(scene, cfg).refine(img, cam, prior)
     s, d, g, f = res["search"], res["default"], res["gradient"], res["first"]
@@ -357,9 +357,9 @@ def test_gradient_first_falls_back_to_the_search_and_skips_it_at_a_settled_prior
 
 def test_gradient_only_needs_the_cs_metric():
     with pytest.raises(ValueError, match="gradient only"):
-        hp.RefineConfig(search=False, metric="sad")
+        hp.RefineConfig(routes="gradient", metric="sad")
     with pytest.raises(ValueError, match="polish_iterations"):
-        hp.RefineConfig(polish_iterations=0)
+        hp.Tuning(polish_iterations=0)
 
 
 @pytest.mark.parametrize("name", ["room", "donut.ply"])

@@ -105,7 +105,7 @@ def test_trust_region_is_respected():
 def test_refine_reduces_error_on_rendered_queries(room, metric):
     gts = query_poses(3, seed=4)
     imgs = hp.render(room, CAM, gts)
-    refiner = hp.HGSLocPlugin(room, hp.RefineConfig(metric=metric, patience=2))
+    refiner = hp.HGSLocPlugin(room, hp.RefineConfig.preset("default", metric=metric, patience=2))
     rng = np.random.default_rng(0)
     before, after = [], []
     for gt, im in zip(gts, imgs):
@@ -218,8 +218,9 @@ def test_refine_many_records_failures(room):
 
 
 def test_config_presets_and_validation():
-    assert hp.RefineConfig.preset("paper").neighbourhood == "paper"
-    assert hp.RefineConfig.preset("fast").max_expansions < hp.RefineConfig.preset("accurate").max_expansions
+    assert hp.RefineConfig.preset("paper").tuning.neighbourhood == "paper"
+    assert (hp.RefineConfig.preset("fast").tuning.max_expansions
+            < hp.RefineConfig.preset("accurate").tuning.max_expansions)
     from hgsloc_plugin.refine.plan import make_plan
 
     # with the gradient route first the polish size sets a query's cost: fast polishes smaller than the default
@@ -240,6 +241,30 @@ def test_config_presets_and_validation():
 
     with pytest.raises(dataclasses.FrozenInstanceError):
         hp.RefineConfig().metric = "sad"  # frozen
+
+
+def test_config_holds_what_a_user_sets_and_routes_choose_the_routes():
+    """RefineConfig has at most 12 fields (the inner ones in Tuning); ``routes`` alone picks the routes; overrides
+    of a preset reach Tuning's fields by name; an old route flag is an error that names its replacement."""
+    import dataclasses
+
+    assert len(dataclasses.fields(hp.RefineConfig)) <= 12
+    choice = {name: hp.RefineConfig.preset(name).route_choice() for name in ("default", "search", "gradient", "paper")}
+    assert choice["default"] == (True, "search", True, True)
+    assert choice["search"] == (False, "search", True, True)
+    assert choice["gradient"] == (False, "gradient", True, False)
+    assert choice["paper"] == (False, "search", False, False)
+    # the cost rule accepts every descent: no gradient route first; a non-cs metric has no polish, so no wide search
+    assert not hp.RefineConfig(acceptance="cost").route_choice().gradient_first
+    assert hp.RefineConfig(metric="sad").route_choice() == (False, "search", False, False)
+    assert hp.RefineConfig.preset("default", wide_step_pixels=()).route_choice().wide is False
+    cfg = hp.RefineConfig.preset("search", max_expansions=60, max_shift=0.2)
+    assert (cfg.tuning.max_expansions, cfg.max_shift, cfg.routes) == (60, 0.2, "search")
+    assert cfg.tuning.patience == hp.Tuning().patience  # the other tuning fields keep the preset's
+    with pytest.raises(TypeError, match="routes='lattice'"):
+        hp.RefineConfig.preset("default", polish=False)
+    with pytest.raises(ValueError, match="routes must be one of"):
+        hp.RefineConfig(routes="polish")
 
 
 @pytest.mark.parametrize("metric", ["cs", "sad", "psnr", "ssim", "ncc", "affine"])
@@ -319,7 +344,7 @@ def test_cpu_threads_from_the_environment():
 
 @pytest.mark.slow
 def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
-    """``RefineConfig.wide_step_pixels`` (default (16, 8)): a 30 cm / 8 deg prior the usual search refuses (beyond
+    """``Tuning.wide_step_pixels`` (default (16, 8)): a 30 cm / 8 deg prior the usual search refuses (beyond
     its 32 px trust region) is refined to the truth by the wide search (its lattice levels at ``wide_max_side``,
     then the polish from that size up); a query the gradient route (and the search checking its far travel) already
     answers pays nothing."""
@@ -333,7 +358,7 @@ def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
     imgs = [degrade(im, np.random.default_rng(1000 + k)) for k, im in enumerate(hp.render(scene, cam, gts))]
     rng = np.random.default_rng(308)
     priors = [se3_noise(g, 8.0, 0.3, rng) for g in gts]
-    plain, wide = hp.HGSLocPlugin(scene, hp.RefineConfig(wide_step_pixels=())), hp.HGSLocPlugin(scene)
+    plain, wide = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", wide_step_pixels=())), hp.HGSLocPlugin(scene)
     a, b = plain.refine(imgs[1], cam, priors[1]), wide.refine(imgs[1], cam, priors[1])
     assert not a.accepted and a.route == "search"
     assert b.accepted and b.route == "wide search" and b.pose.errors_to(gts[1])[0] < 0.01
@@ -344,11 +369,11 @@ def test_wide_search_reaches_a_far_prior_only_after_a_refused_search():
     assert a.accepted and a.route == b.route and a.renders == b.renders
     assert np.array_equal(a.pose.as_array(), b.pose.as_array())
     with pytest.raises(ValueError, match="wide_step_pixels"):
-        hp.RefineConfig(wide_step_pixels=(16.0, -8.0))
+        hp.Tuning(wide_step_pixels=(16.0, -8.0))
     with pytest.raises(ValueError, match="wide_max_side"):
-        hp.RefineConfig(wide_max_side=8)
+        hp.Tuning(wide_max_side=8)
     with pytest.raises(ValueError, match="same_minimum_pixels"):
-        hp.RefineConfig(same_minimum_pixels=-1.0)
+        hp.Tuning(same_minimum_pixels=-1.0)
 
 
 @pytest.mark.slow
@@ -368,13 +393,14 @@ def test_no_wide_search_when_both_routes_end_in_one_minimum():
     img = hp.render(scene, cam, gts[3])
     img = np.clip(img + np.random.default_rng(1).normal(0.0, 0.15, img.shape), 0.0, 1.0).astype(np.float32)
     skip = hp.HGSLocPlugin(scene).refine(img, cam, priors[3])
-    run = hp.HGSLocPlugin(scene, hp.RefineConfig(same_minimum_pixels=0.0)).refine(img, cam, priors[3])
+    run = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", same_minimum_pixels=0.0)).refine(img, cam, priors[3])
     assert skip.route == "search" and skip.gradient_rejected == "weak alignment" and skip.accepted
     t, a = skip.pose.errors_to(gts[3])
     assert t < 0.03 and a < 0.5 and skip.sigma_t > 0.1 and skip.confidence < 0.01, (t, a, skip.sigma_t)
     assert run.route == "wide search" and not run.accepted
     assert skip.renders < 0.8 * run.renders
     # a query's own trust region, no larger than the wide search's would be, leaves it no room: not run either
-    tight = hp.HGSLocPlugin(scene, hp.RefineConfig(same_minimum_pixels=0.0)).refine(img, cam, priors[3], max_shift=0.05,
-                                                                                   max_rotation_deg=1.0)
+    no_skip = hp.RefineConfig.preset("default", same_minimum_pixels=0.0)
+    tight = hp.HGSLocPlugin(scene, no_skip).refine(img, cam, priors[3], max_shift=0.05,
+                                            max_rotation_deg=1.0)
     assert tight.route == "search" and not tight.accepted and tight.max_shift == 0.05

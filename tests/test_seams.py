@@ -81,8 +81,8 @@ def test_metric_registry_drives_the_config():
     assert hp.RefineConfig(metric="ncc").polishes is False and hp.RefineConfig().polishes is True
     with pytest.raises(ValueError, match="metric must be one of"):
         hp.RefineConfig(metric="ssd")  # a render_cost metric, not a search heuristic
-    with pytest.raises(ValueError, match="search=False"):
-        hp.RefineConfig(search=False, metric="ssim")
+    with pytest.raises(ValueError, match="routes=.gradient."):
+        hp.RefineConfig(routes="gradient", metric="ssim")
 
 
 def test_dialect_registry_reads_every_registered_format(tmp_path):
@@ -114,7 +114,7 @@ class ProtocolOnly:
         return getattr(self._inner, name)
 
 
-@pytest.mark.parametrize("settings", [{}, {"working_set_min": 0}, {"gradient_first": False}],
+@pytest.mark.parametrize("settings", [{}, {"working_set_min": 0}, {"routes": "search"}],
                          ids=["default", "working set", "search"])
 def test_the_refinement_uses_only_the_renderer_protocol(settings):
     """Through ``refine``, with a working set following the poses and on the search route, the refinement asks a
@@ -123,7 +123,7 @@ def test_the_refinement_uses_only_the_renderer_protocol(settings):
     assert {"full", "largest", "selections", "working_set", "pose_gradient_bands"} <= ProtocolOnly.NAMES
     cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
     scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
-    config = hp.RefineConfig(**settings)
+    config = hp.RefineConfig.preset("default", **settings)
     plain = hp.HGSLocPlugin(scene, config).refine(img, cam, prior)
     other = hp.HGSLocPlugin(scene, config, renderer=ProtocolOnly(get_renderer(scene))).refine(img, cam, prior)
     assert np.array_equal(other.pose.as_array(), plain.pose.as_array()) and other.renders == plain.renders
@@ -135,7 +135,7 @@ def test_the_trace_hook_sees_every_judged_route_in_order():
     with its verdict; the last verdict is the result's, and the hook changes nothing."""
     cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
     scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
-    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(gradient_first=False))
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(routes="search"))
     plain = refiner.refine(img, cam, prior)
     seen = []
     refiner.on_judged = lambda cand, verdict, plan: seen.append((cand.route, verdict.rejected, verdict.pose))

@@ -99,7 +99,8 @@ def test_parallel_sort_refines_to_the_same_pose():
     cam = hp.Camera.from_fov(160, 120, 65.0)
     scene, gt, img, prior = room_query(cam, pose_seed=4, noise_deg=1.0, noise_shift=0.03, noise_seed=2)
     img = degrade(img, np.random.default_rng(1))
-    cfg = hp.RefineConfig(working_set_min=0)  # working sets: pooled buffers wider than the Gaussians sorted
+    # working sets: pooled buffers wider than the Gaussians sorted
+    cfg = hp.RefineConfig.preset("default", working_set_min=0)
     res = [hp.HGSLocPlugin(scene, cfg, raster=hp.RasterConfig(sort=s)).refine(img, cam, prior)
            for s in ("serial", "parallel")]
     assert res[0].renders == res[1].renders and res[0].renders > 12  # a whole refinement: line searches, the rule

@@ -91,7 +91,7 @@ def test_user_trust_region_bounds_the_search():
     cam = hp.Camera.from_focal(160, 120, 110.0)
     room, gt, img, coarse = room_query(cam, pose_seed=4, noise_deg=2.0, noise_shift=0.08, noise_seed=2)
     # the lattice alone (fine levels: the coarse steps are larger than the region), then search + polish
-    for cfg, moved in ((hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5, polish=False,
+    for cfg, moved in ((hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5, routes="lattice",
                                                level_pixels=(4.0, 2.0, 1.0, 0.5, 0.25)), 0.01),
                        (hp.RefineConfig.preset("fast", max_shift=0.02, max_rotation_deg=0.5), 0.005)):
         r = hp.HGSLocPlugin(room, cfg).refine(img, cam, coarse)

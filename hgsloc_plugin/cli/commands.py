@@ -51,7 +51,7 @@ def cmd_refine(args) -> int:
         overrides["max_rotation_deg"] = parse_angle(args.max_rotation, "--max-rotation")
     overrides.update(prior_error_overrides(args.prior_error, args.prior_rotation_error))
     if args.no_polish:
-        overrides["polish"] = False
+        overrides["routes"] = "lattice"
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")

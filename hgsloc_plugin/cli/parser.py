@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_intrinsics_flags(r)
     r.add_argument("--out", required=True, help="refined pose file (same dialect as --poses)")
     r.add_argument("--config", default="default", help=PRESET_HELP)
-    r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish after the search")
+    r.add_argument("--no-polish", action="store_true", help="skip the Levenberg-Marquardt polish: the lattice "
+                   "search only (routes 'lattice')")
     r.add_argument("--metric", choices=list(METRICS), help="heuristic (default cs: local structure)")
     r.add_argument("--max-shift", help="trust region: camera shift from the prior, e.g. 0.25m or 25cm "
                                        "(scene units; default: 8 coarsest steps)")

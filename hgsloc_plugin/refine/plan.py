@@ -76,25 +76,25 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
     """The plan of one query: ``prior``'s settings first, then ``config``'s, then the automatic trust region
     (``trust_steps`` coarsest steps; half the depth and 10 degrees for the paper's raw-component steps).
     ``step_pixels``: the automatic levels' image motion instead of ``config.step_pixels`` (the wide search's
-    ``config.wide_step_pixels``)."""
+    ``config.tuning.wide_step_pixels``)."""
     cfg = config
     cam_final = camera.with_max_side(cfg.score_max_side)
-    coarse_side = max(cfg.coarse_scale * max(cam_final.width, cam_final.height), cfg.coarse_min_side)
+    coarse_side = max(cfg.tuning.coarse_scale * max(cam_final.width, cam_final.height), cfg.tuning.coarse_min_side)
     cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
     cam_polish = camera.with_max_side(cfg.polish_max_side)
-    cam_wide = cam_final.with_max_side(cfg.wide_max_side)
+    cam_wide = cam_final.with_max_side(cfg.tuning.wide_max_side)
     depth = median_depth(scene, cam_final, coarse_pose)
-    if cfg.neighbourhood == "paper":
-        levels = [(cfg.paper_step_q, cfg.paper_step_t)]
-    elif cfg.levels:
-        levels = list(cfg.levels)
+    if cfg.tuning.neighbourhood == "paper":
+        levels = [(cfg.tuning.paper_step_q, cfg.tuning.paper_step_t)]
+    elif cfg.tuning.levels:
+        levels = list(cfg.tuning.levels)
     else:
         f = 0.5 * (cam_final.fx + cam_final.fy)
         levels = [(math.degrees(px / f), px * depth / f) for px in (step_pixels or cfg.step_pixels)]
-    if cfg.neighbourhood == "paper":  # raw-component steps: no image-motion scale
+    if cfg.tuning.neighbourhood == "paper":  # raw-component steps: no image-motion scale
         auto_shift, auto_rotation = 0.5 * depth, 10.0
     else:
-        auto_shift, auto_rotation = cfg.trust_steps * levels[0][1], cfg.trust_steps * levels[0][0]
+        auto_shift, auto_rotation = cfg.tuning.trust_steps * levels[0][1], cfg.tuning.trust_steps * levels[0][0]
     return Plan(coarse_pose, cam_final, cam_coarse, cam_polish, cam_wide, tuple(levels), depth,
                 _first(prior.shift_bound(depth), cfg.max_shift, auto_shift),
                 _first(prior.max_rotation_deg, cfg.max_rotation_deg, auto_rotation),

@@ -93,10 +93,12 @@ class Refiner:
 
         plan = make_plan(cfg, self.scene, camera, coarse_pose, prior)
         renderer = self._working_set(plan)
-        ctx = QueryContext(cfg, plan, renderer, Scorer(renderer, cfg.metric, cfg.background, cfg.mask_alpha),
+        ctx = QueryContext(cfg, plan, renderer, Scorer(renderer, cfg.metric, cfg.background, cfg.tuning.mask_alpha),
                            img, name)
+        routes = cfg.route_choice()
+        main_route = search_route if routes.main == "search" else gradient_route
         tried: list[tuple[Candidate, Verdict]] = []
-        if cfg.gradient_first and cfg.search and cfg.polishes and cfg.acceptance == "trust":
+        if routes.gradient_first:
             tried.append(self._judged(ctx, gradient_route(ctx)))
             if not tried[-1][1].ends_refinement():
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
@@ -105,18 +107,17 @@ class Refiner:
                              name)
                 tried = _lower_cost_last([tried[-1], self._judged(ctx, search_route(ctx))])
         if not tried or not tried[-1][1].ends_refinement():
-            tried.append(self._judged(ctx, search_route(ctx) if cfg.search else gradient_route(ctx)))
-            if _agree_but_weakly_aligned(tried, plan, cfg.same_minimum_pixels):
+            tried.append(self._judged(ctx, main_route(ctx)))
+            if _agree_but_weakly_aligned(tried, plan, cfg.tuning.same_minimum_pixels):
                 logger.debug("query %s: gradient route and search agree, refused for weak alignment only; the "
                              "rule judges the search's pose on their agreement instead", name)
                 tried.append(self._judged(ctx, tried[-1][0], structural=False))
-        if (cfg.wide_step_pixels and cfg.search and cfg.polishes and cfg.neighbourhood == "lattice" and not cfg.levels
-                and not tried[-1][1].ends_refinement()):
-            if _same_minimum(tried[:2], plan, cfg.same_minimum_pixels):
+        if routes.wide and not tried[-1][1].ends_refinement():
+            if _same_minimum(tried[:2], plan, cfg.tuning.same_minimum_pixels):
                 logger.debug("query %s: gradient route and search refused in one minimum (%s); no wide search", name,
                              tried[-1][1].rejected)
                 return _result(ctx, tried, time.perf_counter() - t0)
-            wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.wide_step_pixels)
+            wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.tuning.wide_step_pixels)
             if wide.max_shift <= plan.max_shift and wide.max_rotation_deg <= plan.max_rotation_deg:
                 logger.debug("query %s: search rejected (%s); its trust region leaves a wide search no room", name,
                              tried[-1][1].rejected)
@@ -130,8 +131,8 @@ class Refiner:
         """``cand`` and the rule's verdict on it; ``structural`` False: without the alignment test."""
         cfg = self.config
         verdict = judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
-                        lattice=cfg.neighbourhood == "lattice",
-                        structural=structural and METRICS[cfg.metric].structural, pivot=cfg.pivot, name=ctx.name)
+                        lattice=cfg.tuning.neighbourhood == "lattice",
+                        structural=structural and METRICS[cfg.metric].structural, pivot=cfg.tuning.pivot, name=ctx.name)
         if self.on_judged is not None:
             self.on_judged(cand, verdict, ctx.plan)
         return cand, verdict
@@ -139,12 +140,12 @@ class Refiner:
     def _working_set(self, plan: Plan) -> RendererLike:
         """The renderer the routes use: a :class:`WorkingSet` that follows the poses scored (region radius
         ``working_set_pixels`` of image motion at the final size), or the whole map when
-        ``RefineConfig.working_set`` is off or the map has fewer than ``working_set_min`` Gaussians."""
-        if not self.config.working_set or self.renderer.n < self.config.working_set_min:
+        ``Tuning.working_set`` is off or the map has fewer than ``working_set_min`` Gaussians."""
+        if not self.config.tuning.working_set or self.renderer.n < self.config.tuning.working_set_min:
             return self.renderer
         cam = plan.cam_final
         f = min(cam.fx, cam.fy)
-        px = self.config.working_set_pixels
+        px = self.config.tuning.working_set_pixels
         return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish, plan.cam_wide],
                           px * plan.depth / f, math.degrees(px / f))
 
@@ -195,7 +196,7 @@ def _agree_but_weakly_aligned(tried: list[tuple[Candidate, Verdict]], plan: Plan
 def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
     """Whether the gradient route and the search were both refused, neither at the trust region's edge, at poses
     within ``pixels`` of image motion at the final size (centre shift at the plan's depth plus rotation): the
-    map's own minimum near the prior, where a wide search finds nothing else (``RefineConfig.same_minimum_pixels``)."""
+    map's own minimum near the prior, where a wide search finds nothing else (``Tuning.same_minimum_pixels``)."""
     if len(tried) != 2 or tried[0][0].route != "gradient" or not pixels > 0:
         return False
     if any(v.rejected in (None, TRUST_REGION_EDGE) for _, v in tried):

@@ -42,7 +42,7 @@ class RefineResult:
             levels: per-level details; history: best cost after each expansion; seconds: wall time.
         working_set / working_set_selections: Gaussians rendered (the largest selection) and selections made.
         route: "gradient" (the polish alone from the coarse pose), "search" (lattice search + polish) or "wide
-            search" (``RefineConfig.wide_step_pixels``, after a refused search): the route of the returned
+            search" (``Tuning.wide_step_pixels``, after a refused search): the route of the returned
             candidate (a gradient pose that travelled beyond a window's reach is checked against the search's,
             the lower cost returned); gradient_rejected: why the gradient route's pose was refused before the
             search ran.

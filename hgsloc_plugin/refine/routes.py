@@ -96,19 +96,19 @@ def _scorer_to_judge_size(ctx: QueryContext) -> None:
 
 def wide_search_route(ctx: QueryContext) -> Candidate:
     """The wide search, for priors tens of pixels of image motion off (after the search's pose is refused):
-    best-first lattice levels of the plan's steps (``RefineConfig.wide_step_pixels``) with pattern moves, scored at
+    best-first lattice levels of the plan's steps (``Tuning.wide_step_pixels``) with pattern moves, scored at
     the small ``plan.cam_wide`` (``wide_max_side``) where the cost still falls towards the truth, then the polish
     coarse to fine from that size over the wide, pyramid, final and polish sizes. Needs ``config.polishes``."""
     cfg, plan, scorer, coarse = ctx.config, ctx.plan, ctx.scorer, ctx.plan.coarse_pose
     scorer.set_query(plan.cam_wide, ctx.image, renderer=ctx.renderer)
     best_pose, best_cost = coarse, float(scorer([coarse])[0])
     cand = Candidate("wide search", coarse, math.nan, math.nan, coarse)
-    remaining = cfg.max_expansions
+    remaining = cfg.tuning.max_expansions
     for step in plan.levels:
         if remaining <= 0:
             break
         best_pose, best_cost, used = _level(ctx, cand, best_pose, best_cost, step, plan.cam_wide,
-                                            min(cfg.max_expansions_per_level, remaining), pattern=True)
+                                            min(cfg.tuning.max_expansions_per_level, remaining), pattern=True)
         remaining -= used
     cand.pose = cand.after_coarse = best_pose
     cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
@@ -122,24 +122,24 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
     pose, its cost at the final size, the best pose after the pyramid levels and the levels' effort."""
     cfg, plan, scorer = ctx.config, ctx.plan, ctx.scorer
     best_pose, best_cost, best_cam = cand.pose, cand.cost, plan.cam_final
-    remaining = cfg.max_expansions
+    remaining = cfg.tuning.max_expansions
     exact, lod = scorer.renderer, None
     for li, step in enumerate(plan.levels):
         if remaining <= 0:
             break
-        is_coarse = li < cfg.coarse_levels and li < len(plan.levels) - 1
+        is_coarse = li < cfg.tuning.coarse_levels and li < len(plan.levels) - 1
         cam_l = plan.cam_coarse if is_coarse else plan.cam_final
-        if is_coarse and lod is None and cfg.coarse_lod_pixels is not None and exact.full is not exact:
+        if is_coarse and lod is None and cfg.tuning.coarse_lod_pixels is not None and exact.full is not exact:
             lod = coarse_lod(exact.full, plan.cam_coarse, plan.coarse_pose, plan.max_shift, plan.max_rotation_deg,
-                             cfg.coarse_lod_pixels)
+                             cfg.tuning.coarse_lod_pixels)
         want = lod if is_coarse and lod is not None else exact
         if cam_l != best_cam or want is not scorer.renderer:
             scorer.set_query(cam_l, ctx.image, renderer=want)
             best_cost = float(scorer([best_pose])[0])
             best_cam = cam_l
         best_pose, best_cost, used = _level(ctx, cand, best_pose, best_cost, step, cam_l,
-                                            min(cfg.max_expansions_per_level, remaining),
-                                            pattern=cfg.pattern_moves and cfg.neighbourhood == "lattice")
+                                            min(cfg.tuning.max_expansions_per_level, remaining),
+                                            pattern=cfg.tuning.pattern_moves and cfg.tuning.neighbourhood == "lattice")
         remaining -= used
         if is_coarse:
             cand.after_coarse = best_pose
@@ -152,16 +152,16 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
 def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tuple[float, float], cam: Camera,
            budget: int, pattern: bool) -> tuple[Pose, float, int]:
     """One best-first level of ``step`` (degrees, scene units) from ``pose`` at its ``cost``, scored at ``cam``
-    (the scorer's current size), in ``config.neighbourhood``; adds its effort to ``cand``. Returns the best pose,
+    (the scorer's current size), in ``config.tuning.neighbourhood``; adds its effort to ``cand``. Returns the best pose,
     its cost and the expansions used."""
     cfg, plan = ctx.config, ctx.plan
     s_rot, s_t = step
-    if cfg.neighbourhood == "paper":
+    if cfg.tuning.neighbourhood == "paper":
         space = PaperSpace(pose, s_rot, s_t)
     else:
-        space = LatticeSpace(pose, math.radians(s_rot), s_t, plan.depth if cfg.pivot else 0.0)
-    lr = best_first(space, cost, ctx.scorer, plan.allows, budget=budget, patience=cfg.patience,
-                    weight=cfg.heuristic_weight, depth_cost=cfg.depth_cost, pattern=pattern)
+        space = LatticeSpace(pose, math.radians(s_rot), s_t, plan.depth if cfg.tuning.pivot else 0.0)
+    lr = best_first(space, cost, ctx.scorer, plan.allows, budget=budget, patience=cfg.tuning.patience,
+                    weight=cfg.tuning.heuristic_weight, depth_cost=cfg.tuning.depth_cost, pattern=pattern)
     cand.expansions += lr.expansions
     cand.history.extend(lr.history)
     cand.levels.append(LevelStats(s_rot, s_t, cam.width, cam.height, lr.expansions, lr.renders, lr.best_cost,
@@ -180,8 +180,8 @@ def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) 
     for i, cam in enumerate(cams):
         q = ctx.scorer.window_query(cam, ctx.image)
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
-        pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.polish_iterations,
-                             allowed=plan.allows, background=cfg.background, mask_alpha=cfg.mask_alpha,
+        pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.tuning.polish_iterations,
+                             allowed=plan.allows, background=cfg.background, mask_alpha=cfg.tuning.mask_alpha,
                              converged=FINAL if last else STAGE,
                              line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
         cand.polish.append(stats)

@@ -101,7 +101,7 @@ class Assessment:
 def settled(a: Assessment) -> bool:
     """Whether a pose refused only for lack of improvement sits in a sharp, well-aligned minimum (every other
     test passes): the coarse pose is already as good as the map can tell, so a search from it is not run
-    (``RefineConfig.gradient_first``)."""
+    (``RefineConfig.routes``)."""
     return (a.rejected in ("insignificant", "no improvement")
             and _shape_reason(a.alignment, a.sharpness, a.travel, a.level_shift, not math.isnan(a.alignment)) is None)
 

@@ -7,7 +7,7 @@ one cell are replaced by one: weights ``w = o * a`` (opacity times the dilated f
 weighted mean, moment-matched covariance, weighted SH coefficients, and the opacity
 ``1 - prod(1 - o_i min(1, a_i / a))``; every other Gaussian, and every one-member cell, is kept as it is. Merged
 Gaussians sit in the resident order at their first member's place. The result is approximate (opt-in:
-``RefineConfig.coarse_lod_pixels``; measurements in ``benchmarks/defaults.md``).
+``Tuning.coarse_lod_pixels``; measurements in ``benchmarks/defaults.md``).
 """
 
 from __future__ import annotations

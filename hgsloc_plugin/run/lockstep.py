@@ -16,7 +16,7 @@ So:
   query at a time, whatever the batch size or the order in which queries finish.
 
 A query that finishes leaves the batch and the next one takes its place; at most ``batch_size`` are live.
-On maps of ``RefineConfig.working_set_min`` Gaussians or more each query renders from its own working set (a
+On maps of ``Tuning.working_set_min`` Gaussians or more each query renders from its own working set (a
 subset of the map); the calls of one group then render from the union of their subsets
 (``Renderer.union``: every pose's image is the whole map's, bit for bit) when it holds at most
 ``union_limit`` times the largest subset's Gaussians (``backend.DEFAULT_UNION_LIMIT``: none on the CPU, any on

@@ -1,6 +1,6 @@
 """Accuracy benchmark in the shape of the paper's noise table, written as Markdown.
 
-Usage: python benchmarks/accuracy.py [--queries 4] [--paper-queries 2] [--out benchmarks/accuracy.md]
+Usage: python -m benchmarks.accuracy [--queries 4] [--paper-queries 2] [--out benchmarks/accuracy.md]
 
 Scenes: the embedded demo room and (when ../shared/data/scenes is present) donut.ply. Queries are rendered at
 known poses and degraded like photos (gain, gamma, blur, noise, an occluder); coarse poses follow the noise
@@ -14,20 +14,17 @@ L1) on a subset. Errors: camera-centre distance and rotation angle, medians over
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.core.fileio import atomic_write_bytes  # noqa: E402
-from hgsloc_plugin.evaluation.noise import apply_protocol  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import ROOT
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.core.fileio import atomic_write_bytes
+from hgsloc_plugin.evaluation.noise import apply_protocol
 
 HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
 CS_MODES = {"search only": hp.RefineConfig(routes="lattice"), "search + polish": hp.RefineConfig.preset("search"),

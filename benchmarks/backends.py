@@ -1,9 +1,9 @@
 """Cross-backend check: the same renders and refinements on this process's backend, for comparison across backends.
 
 Usage:
-    HGSLOC_ARCH=cuda python benchmarks/backends.py --out cuda.json
-    HGSLOC_ARCH=cpu  python benchmarks/backends.py --out cpu.json
-    python benchmarks/backends.py --compare cpu.json cuda.json [--md FILE]
+    HGSLOC_ARCH=cuda python -m benchmarks.backends --out cuda.json
+    HGSLOC_ARCH=cpu  python -m benchmarks.backends --out cpu.json
+    python -m benchmarks.backends --compare cpu.json cuda.json [--md FILE]
 
 The same code runs on either backend (``hp.init``); this script records what one backend gives, and
 ``--compare`` sets two records side by side. Real photos first:
@@ -28,13 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.render.lod import psnr  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import ROOT
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.render.lod import psnr
 
 PRIORS = {"snow": ((2, 1.0), (5, 2.0)), "lego": ((1, 1.0),)}  # (% of depth, or 0.025 units per 1, deg)
 
@@ -63,7 +60,7 @@ def _digest(poses) -> str:
 
 def record(dataset: str, passes: int) -> tuple[dict, dict]:
     """This backend's refinements of one dataset (a dict for JSON) and its renders (name -> [H, W, 3])."""
-    from real_photos import load_dataset
+    from benchmarks.harness import load_dataset
 
     loaded = load_dataset(dataset)
     if loaded is None:

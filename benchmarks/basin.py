@@ -1,9 +1,9 @@
 """Basin: how far a prior may be from the truth and still be refined, per scene, with the default refiner.
 
-Usage: python benchmarks/basin.py [--cases snow_sharp snow lego room donut] [--queries 6] [--wide 16,8]
+Usage: python -m benchmarks.basin [--cases snow_sharp snow lego room donut] [--queries 6] [--wide 16,8]
                                   [--rows ROW ...] [--out FILE]
-       python benchmarks/basin.py --agreement [--cases ...] [--rows ...]
-       python benchmarks/basin.py --routes [--out FILE]
+       python -m benchmarks.basin --agreement [--cases ...] [--rows ...]
+       python -m benchmarks.basin --routes [--out FILE]
 
 One run. Real photos first: the 6 snow photos on the good map (``snow_sharp.ply``) and on the imperfect one
 (``snow.ply``), then lego's held-out renders, the demo room and the donut (photo-degraded renders). Lengths are in
@@ -30,21 +30,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import DATA, localizer_errors, shaped_prior, worse_count, write_keeping_notes  # noqa: E402
-from trust import data_case, donut_case, room_case  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import DATA, localizer_errors, shaped_prior, worse_count, write_keeping_notes
+from benchmarks.trust import data_case, donut_case, room_case
+from hgsloc_plugin.evaluation.noise import se3_noise
 
 SIZES = ((1.0, 0.5), (5.0, 2.0), (15.0, 5.0), (30.0, 8.0), (40.0, 10.0), (60.0, 15.0))
 SHAPED = (("dfnet", "DFNet-shaped"), ("marepo", "Marepo-shaped"))
@@ -223,7 +217,7 @@ def main() -> None:
         print("\n".join(outcome_table(outcomes)), flush=True)
     if a.out:
         head = ["# Basin (`benchmarks/basin.py`)", "",
-                f"Regenerate: `python benchmarks/basin.py --out {a.out}`. Backend {arch}; "
+                f"Regenerate: `python -m benchmarks.basin --out {a.out}`. Backend {arch}; "
                 f"{'wide_step_pixels ' + a.wide if a.wide else 'default config'}; one run, "
                 f"{(time.perf_counter() - t0) / 60:.0f} min. cm-eq: 7-Scenes-equivalent cm (the room: cm)."]
         write_keeping_notes(a.out, head + lines)

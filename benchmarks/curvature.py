@@ -1,6 +1,6 @@
 """Curvature: how well the polish's Gauss-Newton matrix models the cs cost's curvature at its minimum.
 
-Usage: python benchmarks/curvature.py [--cases snow_sharp snow lego] [--step-px 0.2]
+Usage: python -m benchmarks.curvature [--cases snow_sharp snow lego] [--step-px 0.2]
                                       [--out benchmarks/curvature.md]
 
 Per query (priors 2 % of the depth / 1 deg off, seed 7, refined with the defaults; the returned pose), at the
@@ -26,17 +26,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from derivative_pass import renderer_for  # noqa: E402
-from real_photos import write_keeping_notes  # noqa: E402
-from throughput import case_priors, load  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.image import resize_image  # noqa: E402
-from tests.reference.render_torch import window_map  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.derivative_pass import renderer_for
+from benchmarks.harness import (
+    case_priors,
+    load,
+    write_keeping_notes,
+)
+from hgsloc_plugin.core.image import resize_image
+from tests.reference.render_torch import window_map
 
 
 def linearised_hessian(rgb: np.ndarray, drgb: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -109,7 +107,7 @@ def main() -> None:
     args = ap.parse_args()
     hp.init()
     lines = ["# Curvature at the minimum (`benchmarks/curvature.py`)", "",
-             "Regenerate: `python benchmarks/curvature.py --out benchmarks/curvature.md`.", "",
+             "Regenerate: `python -m benchmarks.curvature --out benchmarks/curvature.md`.", "",
              f"Returned poses of priors 2 % of the depth / 1 deg off (seed 7); true Hessian by central differences "
              f"of the analytic gradient at {args.step_px:g} px per axis. Columns: eigenvalues of `JtJ^-1 H`, "
              "ascending (all 1: the Gauss-Newton matrix is that curvature); rho: spectral radius of "

@@ -1,6 +1,6 @@
 """Derivative pass: its time in its two blend layouts, in units of one plain render, in one run.
 
-Usage: python benchmarks/derivative_pass.py [--cases snow_sharp snow lego room room_x20] [--repeats 41]
+Usage: python -m benchmarks.derivative_pass [--cases snow_sharp snow lego room room_x20] [--repeats 41]
                                            [--out FILE]
 
 Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set)
@@ -23,17 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import write_keeping_notes  # noqa: E402
-from throughput import load  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.image import resize_image  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import load, write_keeping_notes
+from hgsloc_plugin.core.image import resize_image
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.refine.plan import make_plan
 
 HEADER = ("| case | Gaussians rendered | size | render (ms) | pass (ms): tiles / pixels + masks / pixels | "
           "pass in render-times: tiles / pixels + masks / pixels | tiles vs pixels + masks | derivatives apart |"
@@ -47,7 +41,7 @@ def renderer_for(scene, bg, raster: hp.RasterConfig, plan_args):
     with the rasterizer settings ``raster``; and the plan."""
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=raster)
     plan = make_plan(refiner.config, scene, *plan_args, hp.QueryPrior())
-    r = refiner._working_set(plan)
+    r = refiner.renderer_for(plan)
     return (r.covering([plan.coarse_pose]) if hasattr(r, "covering") else r), plan
 
 
@@ -121,7 +115,7 @@ def table_main(doc: str, script: str, title: str, header: str, rows, repeats: in
     body = [r for case in a.cases for r in rows(case, a.repeats)]
     if a.out:
         write_keeping_notes(Path(a.out), [f"# {title} (`benchmarks/{script}`)", "",
-                                          f"Regenerate: `python benchmarks/{script} --out "
+                                          f"Regenerate: `python -m benchmarks.{Path(script).stem} --out "
                                           f"benchmarks/{Path(script).stem}.md`.", "", header, *body])
 
 

@@ -1,7 +1,7 @@
 """Distorted photos: the snow photos seen through a lens with distortion, refined from their distorted query list
 with no flag, against the same photos undistorted.
 
-Usage: python benchmarks/distortion.py [--seeds 5 6 7 8] [--map snow_sharp.ply] [--out benchmarks/distortion.md]
+Usage: python -m benchmarks.distortion [--seeds 5 6 7 8] [--map snow_sharp.ply] [--out benchmarks/distortion.md]
 
 Each photo is resampled as a lens of OPENCV k1 = -0.25, k2 = 0.08 and a 1.15x longer focal (so no pixel of it
 lies outside the photo) would have taken it: every pixel looks where kornia's inverse lens model says. Both sets

@@ -60,31 +60,31 @@ cuda_tests() {
 }
 
 backends() {
-  HGSLOC_ARCH=cuda "$PY" benchmarks/backends.py --out "$out/cuda.json" \
-    && HGSLOC_ARCH=cpu "$PY" benchmarks/backends.py --out "$out/cpu.json" \
-    && "$PY" benchmarks/backends.py --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md"
+  HGSLOC_ARCH=cuda "$PY" -m benchmarks.backends --out "$out/cuda.json" \
+    && HGSLOC_ARCH=cpu "$PY" -m benchmarks.backends --out "$out/cpu.json" \
+    && "$PY" -m benchmarks.backends --compare "$out/cpu.json" "$out/cuda.json" --md "$out/compare.md"
 }
 
 unions() {
-  HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 1 --rounds 1 \
+  HGSLOC_ARCH=cuda "$PY" -m benchmarks.throughput --cases room_x20 --union-limit 1 --rounds 1 \
       --out "$out/throughput_cuda_no_union.md" \
-    && HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases room_x20 --union-limit 2 --rounds 1 \
+    && HGSLOC_ARCH=cuda "$PY" -m benchmarks.throughput --cases room_x20 --union-limit 2 --rounds 1 \
       --out "$out/throughput_cuda_union2.md"
 }
 
 export -f cuda_tests backends unions
 export out PY
 step tests bash -c cuda_tests
-step throughput env HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --shaped-queries 64 --rounds 1 \
+step throughput env HGSLOC_ARCH=cuda "$PY" -m benchmarks.throughput --shaped-queries 64 --rounds 1 \
     --out "$out/throughput_cuda.md"
-step scale env HGSLOC_ARCH=cuda "$PY" benchmarks/scale.py --queries 64 --processes 4 8 --workers 4 8 \
+step scale env HGSLOC_ARCH=cuda "$PY" -m benchmarks.scale --queries 64 --processes 4 8 --workers 4 8 \
     --threads 2 --out "$out/scale_cuda.md"
 step backends bash -c backends
-step presets env HGSLOC_ARCH=cuda "$PY" benchmarks/throughput.py --cases 7scenes_shaped --shaped-queries 64 \
+step presets env HGSLOC_ARCH=cuda "$PY" -m benchmarks.throughput --cases 7scenes_shaped --shaped-queries 64 \
     --rounds 1 --config fast --out "$out/throughput_cuda_fast.md"
-step tile_lists env HGSLOC_ARCH=cuda "$PY" benchmarks/tile_lists.py --out "$out/tile_lists_cuda.md"
+step tile_lists env HGSLOC_ARCH=cuda "$PY" -m benchmarks.tile_lists --out "$out/tile_lists_cuda.md"
 step unions bash -c unions
-step derivative_pass env HGSLOC_ARCH=cuda "$PY" benchmarks/derivative_pass.py --out "$out/derivative_pass_cuda.md"
-step map_scale env HGSLOC_ARCH=cuda "$PY" benchmarks/map_scale.py --paths "whole map, search" \
+step derivative_pass env HGSLOC_ARCH=cuda "$PY" -m benchmarks.derivative_pass --out "$out/derivative_pass_cuda.md"
+step map_scale env HGSLOC_ARCH=cuda "$PY" -m benchmarks.map_scale --paths "whole map, search" \
     "working set, gradient first" --out "$out/map_scale_cuda.md"
 exit $status

@@ -53,7 +53,15 @@ def checkout_env(checkout: Path) -> dict[str, str]:
     checkout = checkout.resolve()
     if not (checkout / "hgsloc_plugin" / "kernels").exists():
         raise SystemExit(f"{checkout}: no hgsloc_plugin/kernels (link it to the checkout's kernels/)")
-    return dict(os.environ, PYTHONPATH=str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(checkout), str(ROOT), os.environ.get("PYTHONPATH", "")]))
+
+
+def module_command(file: str, checkout: Path | None = None) -> list[str]:
+    """The command that runs the benchmark whose ``__file__`` is ``file`` as ``python -m benchmarks.<name>`` (with
+    ``cwd=ROOT``). With ``checkout`` (run in ``checkout_env``'s environment): with ``-P``, so that the package comes
+    from the checkout first on ``PYTHONPATH``, not from the working directory; the benchmarks then come from the
+    checkout when it holds them as a package (``benchmarks/__init__.py``), else from this one."""
+    return [sys.executable, *(["-P"] if checkout is not None else []), "-m", f"benchmarks.{Path(file).stem}"]
 
 
 def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
@@ -61,8 +69,8 @@ def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
     checkout's) and return the JSON object its last line prints; it must name, as ``checkout``, the folder its
     package came from, which is checked."""
     env = checkout_env(checkout) if checkout is not None else dict(os.environ)
-    p = subprocess.run([sys.executable, script, "--child", *args], capture_output=True, text=True, env=env,
-                       cwd=ROOT)
+    p = subprocess.run([*module_command(script, checkout), "--child", *args], capture_output=True, text=True,
+                       env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({checkout or ROOT}, {args}):\n{p.stderr[-3000:]}")
     out = json.loads(p.stdout.strip().splitlines()[-1])
@@ -114,12 +122,12 @@ def before_args(ap: argparse.ArgumentParser, child: Callable[[argparse.Namespace
 
 
 def write_before_table(out: Path, title: str, script: str, setup: str, rows: list[str], args: str = "") -> None:
-    """Write a ``--before`` benchmark's table to ``out`` (its notes kept, ``real_photos.write_keeping_notes``):
+    """Write a ``--before`` benchmark's table to ``out`` (its notes kept, ``harness.write_keeping_notes``):
     the heading ``title`` of ``benchmarks/<script>``, the command that regenerates it (with ``args``, the run's
     own options), the ``setup`` line, the table's ``rows``."""
-    from real_photos import write_keeping_notes
+    from benchmarks.harness import write_keeping_notes
 
     write_keeping_notes(out, [f"# {title} (`benchmarks/{script}`)", "",
-                              f"Regenerate: `python benchmarks/{script} --before DIR {args + ' ' if args else ''}"
-                              f"--out {out}`",
+                              f"Regenerate: `python -m benchmarks.{Path(script).stem} --before DIR "
+                              f"{args + ' ' if args else ''}--out {out}`",
                               "(DIR: the checkout before the change, see the script).", "", setup, "", *rows])

@@ -1,6 +1,6 @@
 """Map floor: how far an imperfect map's cost minimum lies from the true pose, and what the refiner can see of it.
 
-Usage: python benchmarks/map_floor.py [--datasets snow_sharp snow lego] [--draws 8] [--out benchmarks/map_floor.md]
+Usage: python -m benchmarks.map_floor [--datasets snow_sharp snow lego] [--draws 8] [--out benchmarks/map_floor.md]
 
 Part 1, per real query (``../shared/data/snow``: real photos against the sharp map ``snow_sharp`` and the imperfect
 ``snow``; ``lego``: held-out renders): the map's minimum (the default refinement from 3 priors 2 % of depth / 1 deg
@@ -27,7 +27,6 @@ would be worse and how many 1 / 2 cm recalls would be lost against accepting eve
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -35,16 +34,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import load_dataset, write_keeping_notes  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.render import Renderer  # noqa: E402
-from tests.reference.render_torch import window_map  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import load_dataset, write_keeping_notes
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.render import Renderer
+from tests.reference.render_torch import window_map
 
 LINE = np.linspace(-0.5, 1.5, 9)
 #: part 2's priors: (cm-eq, deg) off the true pose in random directions

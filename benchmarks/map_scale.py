@@ -1,8 +1,8 @@
 """Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set vs routes.
 
-Usage: python benchmarks/map_scale.py [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
-       python benchmarks/map_scale.py --stages [--k 1 20]
-       python benchmarks/map_scale.py --footprints [--k 1 20] [--queries 3]
+Usage: python -m benchmarks.map_scale [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
+       python -m benchmarks.map_scale --stages [--k 1 20]
+       python -m benchmarks.map_scale --footprints [--k 1 20] [--queries 3]
 
 The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
 shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
@@ -26,13 +26,14 @@ Columns: ms per render (14 poses per call at the default scoring size, 200x150, 
 the working-set row includes nothing of the selection, which is counted in s / query), working-set size (the
 largest selection of a query, median) and selections per query,
 renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS; then
-where the timed queries' seconds go, by stage and scoring size (``throughput.stage_clock``).
+where the timed queries' seconds go, by stage and scoring size (``harness.stage_clock``).
 
-``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at
-the final scoring size, one pose, median of 15): projection, tile sort, blending, with the Gaussians rendered
-(the working set), those visible (touching a tile), their tile-list entries, the pixels their alpha ellipses
-cover (summed, unclipped, per image pixel: what the blend visits at most); and one working-set selection around
-that prior (the default region, whatever the map's size), which a query makes a few times.
+``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at the
+final scoring size, one pose, median of 15): projection, tile sort, blending (each its kernels' launches,
+``kernels.launch.timed_launches``: on the CPU a launch runs its kernel; the rest of a render is host time), with the
+Gaussians rendered (the working set), those visible (touching a tile), their tile-list entries, the pixels their
+alpha ellipses cover (summed, unclipped, per image pixel: what the blend visits at most); and one working-set
+selection around that prior (the default region, whatever the map's size), which a query makes a few times.
 """
 
 from __future__ import annotations
@@ -47,8 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.machine import ROOT, module_command
 
 # path -> RefineConfig fields (the first is the reference of the speed-up column)
 PATHS = {
@@ -62,9 +62,8 @@ DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradi
 
 
 def child(k: int, path: str, queries: int, noise: str) -> dict:
-    from throughput import stage_clock
-
     import hgsloc_plugin as hp
+    from benchmarks.harness import stage_clock
     from hgsloc_plugin.cli.demo.queries import degrade, query_poses
     from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
     from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
@@ -84,7 +83,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     refiner = hp.HGSLocPlugin(scene, cfg)
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = make_plan(cfg, scene, cam, priors[0], hp.QueryPrior())
-    renderer = refiner._working_set(plan)
+    renderer = refiner.renderer_for(plan)
     poses = [apply_protocol(priors[0], "1cm,0.5deg", np.random.default_rng(s)) for s in range(14)]
     renderer.render_full(plan.cam_final, poses)  # warm-up: compile, workspaces
     t0 = time.perf_counter()
@@ -96,7 +95,7 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     refiner.refine(imgs[0], cam, priors[0])  # warm-up: compiles (or loads) every kernel the routes use, once
     warm = time.perf_counter() - t0
     e0, e1, ren, sec, wset, nsel, passes = [], [], [], [], [], [], []
-    with stage_clock() as spent:
+    with stage_clock(refiner) as spent:
         results = [refiner.refine(img, cam, prior) for img, prior in zip(imgs, priors)]
     for r, gt, prior in zip(results, gts, priors):
         e0.append(prior.errors_to(gt))
@@ -123,6 +122,7 @@ def stages(k: int) -> str:
     from hgsloc_plugin.cli.demo.queries import query_poses
     from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
     from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.kernels.launch import timed_launches
     from hgsloc_plugin.kernels.layout import Rec
     from hgsloc_plugin.refine.plan import make_plan
 
@@ -131,15 +131,9 @@ def stages(k: int) -> str:
     prior = query_poses(1, seed=1)[0]
     refiner = hp.HGSLocPlugin(scene)
     plan = make_plan(refiner.config, scene, QUERY_CAMERA, prior, hp.QueryPrior())
-    r = refiner._working_set(plan)
+    r = refiner.renderer_for(plan)
     r = r.covering([prior]) if hasattr(r, "covering") else r
     cam, bg = plan.cam_final, (0.0, 0.0, 0.0)
-    ws = r.workspace(cam, 1)
-    g, rec = r.gaussians, r.pool.records
-
-    def project():
-        r._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, cam.width, cam.height,
-                   ws.tile, 1, ws.extent, ws.cams, rec.depth, rec.rect, rec.ntiles, rec.packed, np.zeros(1, np.int64))
 
     def ms(fn) -> float:
         fn()
@@ -150,11 +144,18 @@ def stages(k: int) -> str:
             times.append(time.perf_counter() - t0)
         return 1000 * float(np.median(times))
 
-    wset = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0))._working_set(plan)
+    wset = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0)).renderer_for(plan)
     select = ms(lambda: wset.full.working_set(wset.cameras, prior, wset.radius_shift, wset.radius_rotation_deg))
     full = ms(lambda: r.render_full(cam, [prior], bg))
-    geometry = ms(lambda: r._geometry(cam, [prior], ws, bg))
-    proj = ms(project)
+    split = []  # (projection, tile sort, blending and read-back) ms of each render, from its kernels' launches
+    for _ in range(15):
+        with timed_launches() as launches:
+            r.render_full(cam, [prior], bg)
+        t = launches.by_kernel
+        proj, blend = t.get("project", 0.0), t.get("blend_images", 0.0) + t.get("readback", 0.0)
+        split.append((proj, launches.seconds - proj - blend - t.get("ext_arr_to_ndarray", 0.0), blend))
+    proj, sort, blend = (1000 * float(np.median(col)) for col in zip(*split))
+    rec = r.pool.records  # the last render's projection records
     ntiles = rec.ntiles.to_numpy()[0, :r.n]
     seen = ntiles > 0
     # each visible Gaussian's alpha ellipse sigma <= LIM, area 2 pi LIM / sqrt(ca cc - cb^2) (unclipped): the
@@ -163,8 +164,8 @@ def stages(k: int) -> str:
     det = packed[:, Rec.CA] * packed[:, Rec.CC] - packed[:, Rec.CB] ** 2
     footprint = float(np.sum(2.0 * np.pi * np.maximum(packed[:, Rec.LIM], 0.0) / np.sqrt(np.maximum(det, 1e-30))))
     return (f"| {scene.num_gaussians:,} | {r.n:,} | {int(seen.sum()):,} | {int(ntiles.sum()):,} | "
-            f"{footprint / (cam.width * cam.height):.0f} | {full:.1f} | {proj:.1f} | {geometry - proj:.1f} | "
-            f"{full - geometry:.1f} | {select:.1f} |")
+            f"{footprint / (cam.width * cam.height):.0f} | {full:.1f} | {proj:.1f} | {sort:.1f} | "
+            f"{blend:.1f} | {select:.1f} |")
 
 
 def footprints(k: int, queries: int) -> list[str]:
@@ -234,8 +235,8 @@ def main() -> None:
     for k in a.k:
         rows = {}
         for path in a.paths:
-            out = subprocess.run([sys.executable, __file__, "--child", str(k), path, "--queries", str(a.queries),
-                                  "--noise", a.noise], capture_output=True, text=True)
+            out = subprocess.run([*module_command(__file__), "--child", str(k), path, "--queries",
+                                  str(a.queries), "--noise", a.noise], capture_output=True, text=True, cwd=ROOT)
             if out.returncode != 0:
                 print(out.stderr[-2000:], file=sys.stderr)
                 raise SystemExit(f"child k={k} {path} failed")
@@ -258,9 +259,9 @@ def main() -> None:
     lines.append(f"\nTotal {time.time() - t_all:.0f} s; Taichi backend: {rows[a.paths[0]]['arch']}.")
     print(lines[-1])
     if a.out:
-        from real_photos import write_keeping_notes
+        from benchmarks.harness import write_keeping_notes
 
-        head = ["# Map scale (`benchmarks/map_scale.py`)", "", f"Regenerate: `python benchmarks/map_scale.py --out "
+        head = ["# Map scale (`benchmarks/map_scale.py`)", "", f"Regenerate: `python -m benchmarks.map_scale --out "
                 f"{a.out}` (`HGSLOC_ARCH=cuda` for the CUDA table).", ""]
         write_keeping_notes(Path(a.out), head + lines, section="## ")  # its dated sections kept
 

@@ -1,6 +1,6 @@
 """Presets: each ``RefineConfig`` preset's time per query and accuracy against the default's, in one run.
 
-Usage: python benchmarks/presets.py [--cases snow_sharp snow lego room 7scenes_shaped]
+Usage: python -m benchmarks.presets [--cases snow_sharp snow lego room 7scenes_shaped]
                                     [--presets default fast accurate] [--noise 2,1] [--rounds 2] [--out FILE]
 
 The cases, queries and priors of ``benchmarks/throughput.py`` (real photos first). A preset is a name of
@@ -22,15 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import worse_count, write_keeping_notes  # noqa: E402
-from throughput import case_errors, case_priors, is_metric, load, same_poses  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import case_errors, case_priors, is_metric, load, same_poses, worse_count, write_keeping_notes
+from hgsloc_plugin.refine.plan import make_plan
 
 
 def parse_preset(spec: str) -> tuple[str, dict]:
@@ -114,7 +108,7 @@ def main() -> None:
     rows = [row for case in a.cases for row in run(case, a.presets, pct, deg, a.rounds)]
     if a.out:
         write_keeping_notes(a.out, ["# Presets (`benchmarks/presets.py`)", "",
-                                    f"Regenerate: `python benchmarks/presets.py --out {a.out}`.", "", *head, *rows])
+                                    f"Regenerate: `python -m benchmarks.presets --out {a.out}`.", "", *head, *rows])
 
 
 if __name__ == "__main__":

@@ -1,12 +1,12 @@
 """Per-query time of the default refinement against another checkout's, measured in the same run.
 
-Usage: python benchmarks/query_time.py --before DIR [--cases snow_sharp snow lego room] [--seeds 7 8]
+Usage: python -m benchmarks.query_time --before DIR [--cases snow_sharp snow lego room] [--seeds 7 8]
                                        [--rounds 3] [--out FILE]
 
-Per case (the maps, queries and priors of ``benchmarks/throughput.py``: 2 % of the depth, the room 2 cm, 1 deg,
+Per case (the maps, queries and priors of ``benchmarks/harness.py``: 2 % of the depth, the room 2 cm, 1 deg,
 one prior per query and seed in ``--seeds``), one query at a time (``refine_many(batch_size=1)``) after an
-untimed one: seconds per query and per stage (``throughput.stage_clock``), the host's milliseconds per query
-outside Taichi's C++ launches (``throughput.kernel_launches``), renders and derivative passes per query and the
+untimed one: seconds per query and per stage (``harness.stage_clock``), the host's milliseconds per query
+outside Taichi's C++ launches (``harness.kernel_launches``), renders and derivative passes per query and the
 returned poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
 ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its ``kernels/`` and ``adapters/``, as
 ``startup.py --before`` needs; this script runs on both sides, each importing its side's package, which the child
@@ -14,48 +14,42 @@ reports and the parent checks). Each side runs in processes of its own, ``--roun
 see the same state of a shared machine; a row gives the medians over the rounds, the speed-up (before / this
 checkout), the stages' seconds, the returned median errors, how many poses moved and by how much (% of the
 query's median depth, degrees), and the share of the CPU time the hypervisor took meanwhile
-(``benchmarks/machine.py``). ``throughput.py``'s render-times compare one run's queries with one run's render;
+(``benchmarks/machine.py``). ``harness.py``'s render-times compare one run's queries with one run's render;
 this compares two versions of the code on the same queries.
 """
 
 from __future__ import annotations
 
-import importlib
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from machine import alternate, before_args, before_parser, run_child, write_before_table  # noqa: E402
+from benchmarks.machine import alternate, before_args, before_parser, run_child, write_before_table
 
 
 def child(case: str, seeds: list[int]) -> dict:
     """The timed queries in the package this process imports (the ``--child`` side), and where it lies."""
     import hgsloc_plugin as hp
-
-    throughput = importlib.import_module("throughput")  # after the package: it puts this checkout first on the path
-    cam, scene, qs, bg = throughput.load(case)
+    from benchmarks import harness
+    cam, scene, qs, bg = harness.load(case)
     items, truths, scale = [], [], []  # scale: % of the depth (cm on the room) per scene unit
     for seed in seeds:
-        for (name, truth, image, depth), prior in zip(qs, throughput.case_priors(case, qs, 2.0, 1.0, seed)):
+        for (name, truth, image, depth), prior in zip(qs, harness.case_priors(case, qs, 2.0, 1.0, seed)):
             items.append((image, cam, prior, name))
             truths.append(truth)
-            scale.append(100.0 if throughput.is_metric(case) else 100.0 / depth)
+            scale.append(100.0 if harness.is_metric(case) else 100.0 / depth)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(items[0][0], cam, items[0][2])  # untimed: kernel loading, workspaces
-    with throughput.stage_clock() as spent, throughput.kernel_launches() as launches:
+    with harness.stage_clock(refiner) as spent, harness.kernel_launches() as launches:
         t0 = time.perf_counter()
         results = refiner.refine_many(items, progress=False, batch_size=1)
         sec = time.perf_counter() - t0
     n = len(items)
     errors = [r.pose.errors_to(g) for r, g in zip(results, truths)]
     return {"checkout": str(Path(hp.__file__).resolve().parents[1]), "queries": n, "s": sec / n,
-            "stages": {k: v / n for k, v in spent.items()}, "host_ms": 1000 * (sec - launches[1]) / n,
-            "launches": launches[0] / n,
+            "stages": {k: v / n for k, v in spent.items()}, "host_ms": 1000 * (sec - launches.seconds) / n,
+            "launches": launches.count / n,
             "renders": float(np.mean([r.renders for r in results])),
             "passes": float(np.mean([r.derivative_passes for r in results])),
             "t_pct": [e[0] * k for e, k in zip(errors, scale)], "r_deg": [e[1] for e in errors],

@@ -1,6 +1,6 @@
 """Real-photo benchmark: refine real photographs against imperfect 3DGS maps, every heuristic, one run.
 
-Usage: python benchmarks/real_photos.py [--datasets snow lego] [--heuristics cs ssim sad affine] [--seeds 1]
+Usage: python -m benchmarks.real_photos [--datasets snow lego] [--heuristics cs ssim sad affine] [--seeds 1]
                                         [--out benchmarks/real_photos.md]
 
 Data (read in place, skipped with a message when absent):
@@ -24,91 +24,22 @@ Each row: median and worst error of the prior and of the returned pose, queries 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-DATA = ROOT.parent / "shared" / "data"
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.image import load_image  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
-
-#: dataset -> (folder under ../shared/data, map file): snow has an imperfect map and a good one
-MAPS = {"snow": ("snow", "snow.ply"), "snow_sharp": ("snow", "snow_sharp.ply"), "lego": ("lego", "lego.ply")}
-
-
-def load_dataset(name: str):
-    """(camera, scene, [(image name, true pose, image [H, W, 3], median depth)], background) or None."""
-    folder, ply = MAPS.get(name, (name, f"{name}.ply"))
-    d = DATA / folder
-    if not (d / ply).exists():
-        print(f"skipping {name}: {d / ply} not found", file=sys.stderr)
-        return None
-    cj = json.loads((d / "camera.json").read_text())
-    cam = hp.Camera(int(cj["width"]), int(cj["height"]), cj["fx"], cj["fy"], cj["cx"], cj["cy"])
-    scene = hp.GaussianScene.from_ply(d / ply)
-    white = name == "lego"
-    queries = []
-    for line in (d / "gt.txt").read_text().splitlines():
-        t = line.split()
-        gt = hp.Pose([float(x) for x in t[1:5]], [float(x) for x in t[5:8]])
-        if white:  # RGBA renders: composite on the white background the map was trained with
-            from PIL import Image
-
-            rgba = np.asarray(Image.open(d / "queries" / t[0]).convert("RGBA"), np.float32) / 255.0
-            img = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
-        else:
-            img = load_image(d / "queries" / t[0])
-        queries.append((t[0], gt, img, median_depth(scene, cam, gt)))
-    return cam, scene, queries, (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
-
-
-def localizer_errors(method: str, inliers: list | None = None) -> list[hp.Pose]:
-    """Camera-frame errors E = T_est T_gt^-1 of a localizer on all 7-Scenes test frames (pGT frame); each
-    estimate's inlier count (None where the file has none) is appended to ``inliers`` when given."""
-    from hgsloc_plugin.adapters import read_poses
-    from hgsloc_plugin.adapters.confidence import record_inliers
-
-    out = []
-    for scene_dir in sorted((DATA / "poses" / "7scenes").glob("*")):
-        est, gt = read_poses(scene_dir / f"{method}.txt"), read_poses(scene_dir / "pgt_sfm_test.txt")
-        by_key = {n.replace("/", "-"): n for n in est}
-        for n, g in gt.items():
-            k = by_key.get(n.replace("/", "-"))
-            if k is not None and est[k] is not None and g is not None:
-                out.append(est[k] @ g.inv())
-                if inliers is not None:
-                    inliers.append(record_inliers(est.dialect, est.record(k).tokens))
-    return out
-
-
-def shaped_prior(gt: hp.Pose, err: hp.Pose, depth: float) -> hp.Pose:
-    """Apply a camera-frame error with its translation scaled by depth / 2 m (7-Scenes' typical depth)."""
-    return hp.Pose(err.qvec, err.tvec * depth / 2.0) @ gt
-
-
-def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
-    """How many returned poses (errors ``e1`` [n, 2]) are further from the truth than their priors (``e0``)."""
-    return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
-
-
-def write_keeping_notes(path: Path, lines: list[str], section: str = "## Notes") -> None:
-    """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping what the file already has from its
-    first line starting with ``section`` (default: its ``## Notes``; ``"## "``: every level-2 section, for a
-    benchmark whose own lines hold none): a benchmark regenerates its figures, not the discussion beside them."""
-    from hgsloc_plugin.core.fileio import atomic_write_bytes
-
-    old = path.read_text() if path.exists() else ""
-    mark = "\n" + section
-    notes = ["", old[old.index(mark) + 1:].rstrip("\n")] if mark in old else []
-    atomic_write_bytes(path, ("\n".join(lines + notes) + "\n").encode())
+import hgsloc_plugin as hp
+from benchmarks.harness import (  # noqa: F401 (the names other benchmarks imported from here)
+    DATA,
+    load_dataset,
+    localizer_errors,
+    shaped_prior,
+    worse_count,
+    write_keeping_notes,
+)
+from hgsloc_plugin.evaluation.noise import se3_noise
 
 
 def protocols(dataset: str, queries, seeds: int):

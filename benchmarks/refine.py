@@ -1,6 +1,6 @@
 """Refinement modes side by side: search only, search + polish, gradient only, gradient first (default), paper.
 
-Usage: python benchmarks/refine.py [--queries 6] [--paper-queries 2] [--lego-queries 6] [--modes M ...] [--cases C ...]
+Usage: python -m benchmarks.refine [--queries 6] [--paper-queries 2] [--lego-queries 6] [--modes M ...] [--cases C ...]
        [--out benchmarks/refine.md]
 
 Same queries and priors for every mode, one run. Cases, real photographs first:
@@ -19,25 +19,19 @@ A final sweep measures where gradient only stops converging (room; converged = <
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.cli.demo.run import QUERY_CAMERA  # noqa: E402
-from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.core.image import resize_image  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.render import get_renderer  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import DATA, ROOT, load_dataset, localizer_errors, shaped_prior, write_keeping_notes
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.core.image import resize_image
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.render import get_renderer
 
 MODES = {
     "search only": hp.RefineConfig(routes="lattice"),

@@ -1,23 +1,20 @@
 """Renderer speed: Taichi (batched) vs the PyTorch reference of tests/reference, in one run.
 
-Usage: python benchmarks/render.py [--scene ../shared/data/scenes/donut.ply] [--repeats 5]
+Usage: python -m benchmarks.render [--scene ../shared/data/scenes/donut.ply] [--repeats 5]
 Prints ms per pose for B=1 and B=14 at 160x120 and 640x480, the reference's ms per pose and the ratio.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import ROOT
+from hgsloc_plugin.cli.demo.scene import make_room_scene
 
 
 def timed(fn, repeats):

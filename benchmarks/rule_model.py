@@ -1,11 +1,12 @@
 """Rule model: does the polish's Gauss-Newton model pick the one-pixel moves the acceptance rule needs?
 
-Usage: python benchmarks/rule_model.py [--cases snow_sharp snow lego room] [--noise 0,1,2,4,8] [--out FILE]
+Usage: python -m benchmarks.rule_model [--cases snow_sharp snow lego room] [--noise 0,1,2,4,8] [--out FILE]
 
 The rule (``refine/trust.py``) renders 6 of a polished candidate's 12 one-pixel moves: the pair the model of the
 last polish stage predicts to rise least, and the four it ranks 5th to 8th (kappa: their median); all 12 when the
-rendered rises do not follow the model (``model_agrees``). Here every judged candidate renders all 12 (the model
-switched off), so the rule's inputs from the 6 can be compared with the 12: per case, the candidates judged
+rendered rises do not follow the model (``model_agrees``). Here the 12 of every judged candidate are rendered
+beside the refinement (read through the refiner's ``on_judged`` hook; the refinement runs as it does by default),
+so the rule's inputs from the 6 can be compared with the 12: per case, the candidates judged
 (every route of every query, priors of each ``--noise`` % of the median depth and half as many degrees, 0 = the
 true pose), the median and lowest correlation of the model with the 12 rendered rises, how often the true minimum
 is one of the flattest pair, kappa from the middle four against the median of the 12 (largest relative
@@ -16,51 +17,45 @@ difference, over the candidates whose rises follow the model), sharpness (lowest
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from throughput import load  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine import trust  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import load
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.refine import trust
 
 
 def record(case: str, noise: list[float]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(rendered rises [12], the model's predicted rises [12]) of every polished candidate judged in ``case``."""
+    """(rendered rises [12], the model's predicted rises [12]) of every polished candidate judged in ``case``: read
+    from the refiner's ``on_judged`` trace hook; the 12 one-pixel moves rendered here, at the judging size, by a
+    scorer of this benchmark's own on the refinement's renderer (the refinement itself runs unchanged)."""
+    from hgsloc_plugin.refine.scorer import Scorer
+
     cam, scene, qs, bg = load(case)
-    out, model_moves = [], trust.model_moves
+    out: list[tuple[np.ndarray, np.ndarray]] = []
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+    image = [None]
 
-    def all_twelve(cand, moves, cam_judge):  # render all 12; keep the model's prediction of each
+    def judged(cand, verdict, plan):
+        cam_judge = plan.cam_polish  # the default routes polish: the rule judges at the polish's size
+        moves = trust.pixel_moves(cand.pose, plan, cam_judge, refiner.config.tuning.pivot)
         predicted = trust.predicted_rises(cand, moves, cam_judge)
-        if predicted is not None:
-            pending.append(predicted)
-        return None
+        if predicted is None:
+            return
+        scorer = Scorer(refiner.renderer_for(plan), "cs", bg, refiner.config.tuning.mask_alpha)
+        scorer.set_query(cam_judge, image[0])
+        costs = scorer([cand.pose, *moves])
+        out.append((costs[1:] - costs[0], predicted))
 
-    assess = trust._assess
-
-    def seen(cand, plan, rises, structural, middle=None):
-        if pending:
-            out.append((np.asarray(rises, np.float64), pending.pop()))
-        return assess(cand, plan, rises, structural, middle)
-
-    pending: list[np.ndarray] = []
-    trust.model_moves, trust._assess = all_twelve, seen
-    try:
-        refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
-        rng = np.random.default_rng(11)
-        for pct in noise:
-            for _, g, img, d in qs:
-                prior = se3_noise(g, pct / 2, pct / 100 * d, rng) if pct else g
-                refiner.refine(img, cam, prior)
-    finally:
-        trust.model_moves, trust._assess = model_moves, assess
+    refiner.on_judged = judged
+    rng = np.random.default_rng(11)
+    for pct in noise:
+        for _, g, img, d in qs:
+            prior = se3_noise(g, pct / 2, pct / 100 * d, rng) if pct else g
+            image[0] = img
+            refiner.refine(img, cam, prior)
     return out
 
 
@@ -90,7 +85,7 @@ def main() -> None:
     args = ap.parse_args()
     noise = [float(x) for x in args.noise.split(",")]
     lines = ["# Rule model (`benchmarks/rule_model.py`)", "",
-             "Regenerate: `python benchmarks/rule_model.py --out benchmarks/rule_model.md`.", "",
+             "Regenerate: `python -m benchmarks.rule_model --out benchmarks/rule_model.md`.", "",
              f"Priors {', '.join(f'{x:g} %' for x in noise)} of the median depth (half as many degrees); every "
              "polished candidate judged, its 12 one-pixel moves rendered.", "",
              "| case | candidates | correlation, median / lowest | true minimum in the flattest pair | "
@@ -101,7 +96,7 @@ def main() -> None:
         lines.append(row(case, record(case, noise)))
         print(lines[-1], flush=True)
     if args.out:
-        from real_photos import write_keeping_notes
+        from benchmarks.harness import write_keeping_notes
 
         write_keeping_notes(args.out, lines)
 

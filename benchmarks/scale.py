@@ -1,6 +1,6 @@
 """Scale-out: queries per second in this process and in worker processes sharing the machine, in one run.
 
-Usage: python benchmarks/scale.py [--case 7scenes_shaped] [--queries 12] [--processes 2] [--workers 1 2]
+Usage: python -m benchmarks.scale [--case 7scenes_shaped] [--queries 12] [--processes 2] [--workers 1 2]
                                   [--threads 1] [--noise 2,1] [--out FILE]
 
 The queries of ``benchmarks/throughput.py``'s ``--case`` (default: the 7-Scenes-shaped job, ``--queries``
@@ -30,17 +30,18 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+import numpy as np
 
-import numpy as np  # noqa: E402
-from real_photos import write_keeping_notes  # noqa: E402
-from throughput import case_priors, load  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.backend import default_batch_size  # noqa: E402
-from hgsloc_plugin.run.batch import as_queries, run_batch  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import (
+    ROOT,
+    case_priors,
+    load,
+    write_keeping_notes,
+)
+from benchmarks.machine import module_command
+from hgsloc_plugin.core.backend import default_batch_size
+from hgsloc_plugin.run.batch import as_queries, run_batch
 
 HEADER = ("| mode | start (s) | s / query | queries / s | speed | same poses |\n"
           "|---|---|---|---|---|---|")
@@ -84,10 +85,10 @@ def child(a) -> None:
 def processes(a, n: int):
     """``n`` child processes started together: (poses by query index, seconds until the last one began refining,
     seconds per query from the first one's first refinement to the last one's end)."""
-    cmd = [sys.executable, __file__, "--case", a.case, "--queries", str(a.queries), "--noise", a.noise,
+    cmd = [*module_command(__file__), "--case", a.case, "--queries", str(a.queries), "--noise", a.noise,
            "--threads", str(a.threads), "--child"]
     t0 = time.time()
-    procs = [subprocess.Popen(cmd + [str(k), str(n)], stdout=subprocess.PIPE, text=True) for k in range(n)]
+    procs = [subprocess.Popen(cmd + [str(k), str(n)], stdout=subprocess.PIPE, text=True, cwd=ROOT) for k in range(n)]
     outs = [p.communicate()[0] for p in procs]
     if any(p.returncode for p in procs):
         sys.exit(f"a child process failed: exit statuses {[p.returncode for p in procs]}")
@@ -161,7 +162,7 @@ def main() -> None:
         row(f"Ray, {workers} worker(s) on {worker_arch}{share}", got, start, per_query)
     if a.out:
         write_keeping_notes(a.out, ["# Scale-out (`benchmarks/scale.py`)", "",
-                                    f"Regenerate: `python benchmarks/scale.py --out {a.out}`.", "", *head, *rows])
+                                    f"Regenerate: `python -m benchmarks.scale --out {a.out}`.", "", *head, *rows])
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Start-up benchmark: what a new process pays before its queries run at full speed.
 
-Usage: python benchmarks/startup.py [--runs 2] [--cold] [--before DIR] [--out FILE]
+Usage: python -m benchmarks.startup [--runs 2] [--cold] [--before DIR] [--out FILE]
 
 Each row is a fresh Python process (as a CLI call or a new script is) that imports the package, starts Taichi,
 renders one image of the demo room and refines one query (320x240, 3 cm / 1 deg prior) twice: the first
@@ -28,7 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.machine import ROOT
+
 SETTINGS = {"memo off": {"HGSLOC_TAICHI_MEMO": "0"}, "default": {}}
 
 
@@ -66,7 +67,9 @@ def run(setting: str, cold: bool = False) -> dict:
     with tempfile.TemporaryDirectory(prefix="hgsloc_cold_cache_") as empty:  # removed with the kernels compiled
         if cold:
             env["HGSLOC_CACHE_DIR"] = empty
-        p = subprocess.run([sys.executable, __file__, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
+        # a setting of another checkout imports its package first on PYTHONPATH: -P keeps the working folder off
+        command = [sys.executable, *(["-P"] if "PYTHONPATH" in SETTINGS[setting] else []), "-m", "benchmarks.startup"]
+        p = subprocess.run([*command, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({setting}):\n{p.stderr[-3000:]}")
     return json.loads(p.stdout)
@@ -83,9 +86,8 @@ def main() -> None:
     if args.child:
         print(json.dumps(child()))
         return
-    sys.path.insert(0, str(ROOT / "benchmarks"))
     if args.before:
-        from machine import checkout_env
+        from benchmarks.machine import checkout_env
 
         SETTINGS[f"before ({args.before.name})"] = {"PYTHONPATH": checkout_env(args.before)["PYTHONPATH"]}
     if not args.cold:
@@ -122,7 +124,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
-        from real_photos import write_keeping_notes
+        from benchmarks.harness import write_keeping_notes
 
         write_keeping_notes(args.out, text.rstrip("\n").split("\n"))
 

@@ -1,6 +1,6 @@
 """Throughput: queries per second of a preset's refinement, and each query's time in units of one plain render.
 
-Usage: python benchmarks/throughput.py [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
+Usage: python -m benchmarks.throughput [--cases snow_sharp snow lego room room_x20 7scenes_shaped] [--noise 2,1]
                                        [--batch-size N] [--shaped-queries N] [--layout backend|cuda] [--rounds N]
                                        [--config PRESET] [--out FILE]
 
@@ -43,200 +43,33 @@ CPU, where a launch runs its kernel, a third by kernel (the seconds in each kern
 from __future__ import annotations
 
 import argparse
-import contextlib
-import math
 import sys
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from machine import StealClock  # noqa: E402
-from real_photos import load_dataset, localizer_errors, shaped_prior, worse_count, write_keeping_notes  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.backend import default_batch_size  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.kernels.config import CUDA_LAYOUT  # noqa: E402  (--layout cuda)
-from hgsloc_plugin.refine.config import PRESETS  # noqa: E402
-from hgsloc_plugin.refine.plan import make_plan  # noqa: E402
-from hgsloc_plugin.run.batch import as_queries  # noqa: E402
-from hgsloc_plugin.run.lockstep import Lockstep, refine_queries  # noqa: E402
-
-
-def room_case(k: int, n: int = 3, scale: float = 1.0):
-    """(camera, scene, [(name, truth, image, median depth)], background) of the room densified ``k`` times, ``n``
-    photo-degraded queries of the undensified room at ``scale`` times the demo's 320x240."""
-    from hgsloc_plugin.cli.demo.queries import degrade, query_poses
-    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
-    from hgsloc_plugin.refine.plan import median_depth
-
-    room, cam = make_room_scene(), QUERY_CAMERA.scaled(scale)
-    gts = query_poses(n, seed=1)
-    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, cam, gts))]
-    scene = densify(room, k) if k > 1 else room
-    qs = [(f"room{i}", g, im, median_depth(scene, cam, g)) for i, (g, im) in enumerate(zip(gts, imgs))]
-    return cam, scene, qs, (0.0, 0.0, 0.0)
-
-
-def shaped_priors(qs) -> list[hp.Pose]:
-    """The 7-Scenes-shaped job's priors: ACE's errors for the first half of ``qs``, Marepo's for the rest."""
-    rng = np.random.default_rng(500)
-    by_method = {m: localizer_errors(m) for m in ("ace", "marepo")}  # each parses every 7-Scenes pose file: once
-    out = []
-    for k, (_, g, _, _) in enumerate(qs):
-        errs = by_method["ace" if k < len(qs) // 2 else "marepo"]
-        out.append(shaped_prior(g, errs[int(rng.integers(len(errs)))], 2.0))  # metric: the errors as they are
-    return out
-
-
-def load(case: str, shaped_queries: int = 6, room_queries: int = 3):
-    """(camera, scene, [(name, truth, image, median depth)], background) of ``case``, or None without its data;
-    ``shaped_queries`` / ``room_queries``: the query count of the 7-Scenes-shaped job / the room cases."""
-    if case == "7scenes_shaped":  # the room, queries at 640x480 (7-Scenes' size)
-        return room_case(1, n=shaped_queries, scale=2.0)
-    if case.startswith("room"):
-        return room_case(int(case.split("_x")[1]) if "_x" in case else 1, n=room_queries)
-    out = load_dataset(case)
-    if out is None:
-        return None
-    cam, scene, qs, bg = out
-    return cam, scene, qs[:5] if case == "lego" else qs, bg
-
-
-def is_metric(case: str) -> bool:
-    """Whether ``case``'s priors and errors are in scene units (the room: metres) rather than % of the depth."""
-    return case.startswith("room") or case == "7scenes_shaped"
-
-
-def case_priors(case: str, qs, pct: float, deg: float, seed: int = 7) -> list[hp.Pose]:
-    """The priors of ``case``'s queries ``qs`` (``load``'s): exactly ``pct`` % of each query's median depth (cm on
-    the room) and ``deg`` degrees in random directions drawn from ``seed``; the 7-Scenes-shaped job's from ACE's
-    and Marepo's errors."""
-    if case == "7scenes_shaped":
-        return shaped_priors(qs)
-    rng = np.random.default_rng(seed)
-    return [se3_noise(g, deg, pct / 100 * (1.0 if is_metric(case) else d), rng) for _, g, _, d in qs]
-
-
-def case_errors(case: str, qs, poses: list[hp.Pose]) -> np.ndarray:
-    """[n, 2]: each pose's error to its query's truth (``qs``: ``load``'s), the centre in % of the query's median
-    depth (cm on the room) and the rotation in degrees."""
-    scale = [(100.0 if is_metric(case) else 100.0 / d) for _, _, _, d in qs]
-    errors = [p.errors_to(g) for (_, g, _, _), p in zip(qs, poses)]
-    return np.array([[t * s, r] for (t, r), s in zip(errors, scale)])
-
-
-def same_poses(first: list, others: list[list]) -> bool:
-    """Whether every result list of ``others`` returned ``first``'s poses bit for bit."""
-    return all(a.pose.as_array().tobytes() == b.pose.as_array().tobytes() for other in others
-               for a, b in zip(first, other))
-
-
-def render_ms(refiner: hp.HGSLocPlugin, cam: hp.Camera, prior: hp.Pose, singles: int = 15,
-              batch: bool = True) -> tuple[float, float]:
-    """One plain render at the final scoring size on the refinement's renderer: (ms for one pose, median of
-    ``singles``, nan for none; ms per pose of a 12-pose batch, nan without ``batch``)."""
-    plan = make_plan(refiner.config, refiner.scene, cam, prior, hp.QueryPrior())
-    renderer = refiner._working_set(plan)
-    poses = [se3_noise(prior, 0.2, 0.01 * plan.depth, np.random.default_rng(s)) for s in range(12)]
-    bg = refiner.config.background
-    renderer.render_full(plan.cam_final, poses if batch else poses[:1], bg)  # warm-up (and the working set)
-    single = []
-    for k in range(singles):
-        t0 = time.perf_counter()
-        renderer.render_full(plan.cam_final, [poses[k % len(poses)]], bg)
-        single.append(time.perf_counter() - t0)
-    one = 1000 * float(np.median(single)) if single else math.nan
-    if not batch:
-        return one, math.nan
-    reps = 5
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        renderer.render_full(plan.cam_final, poses, bg)
-    return one, 1000 * (time.perf_counter() - t0) / (reps * len(poses))
-
-
-@contextlib.contextmanager
-def stage_clock():
-    """Seconds spent per stage while inside: {"polish WxH": s, "search WxH": s, "rule": s}, by scoring size (wraps
-    the route functions the refiner calls; restored on exit)."""
-    from hgsloc_plugin.refine import refiner as refiner_mod
-    from hgsloc_plugin.refine import routes
-
-    spent: dict[str, float] = defaultdict(float)
-
-    def timed(fn, key):
-        def wrapper(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                spent[key(args) if callable(key) else key] += time.perf_counter() - t0
-        return wrapper
-
-    saved = [(routes, "polish"), (routes, "best_first"), (refiner_mod, "judge")]
-    originals = [getattr(m, n) for m, n in saved]
-    routes.polish = timed(routes.polish, lambda a: f"polish {a[1].width}x{a[1].height}")
-    routes.best_first = timed(routes.best_first, lambda a: f"search {a[2].camera.width}x{a[2].camera.height}")
-    refiner_mod.judge = timed(refiner_mod.judge, "rule")
-    try:
-        yield spent
-    finally:
-        for (m, n), f in zip(saved, originals):
-            setattr(m, n, f)
-
-
-@contextlib.contextmanager
-def kernel_launches():
-    """Taichi kernel launches while inside: a list holding their count, the seconds spent in Taichi's C++ launch
-    (``Program.launch_kernel``: on the CPU the kernel's run, on CUDA the enqueue and any wait for a host array) and
-    those seconds per kernel name ({name: s}), so that every launch counts once, through ``Kernel.__call__`` or a
-    ``kernels/launch.py`` Launcher; a ``from_numpy`` upload and a read-back are launches too. The Python each launch
-    costs before it stays outside (host time)."""
-    from taichi.lang import impl
-    from taichi.lang.kernel_impl import Kernel
-
-    count = [0, 0.0, defaultdict(float)]
-    program = type(impl.get_runtime().prog)
-    launcher_class = sys.modules["hgsloc_plugin.kernels.launch"].Launcher  # benchmarks/ shadows the subpackages
-    originals = (program.launch_kernel, launcher_class.__call__, Kernel.__call__)
-    naming = threading.local()  # the kernel the launching thread is in (a Launcher's, else Taichi's own)
-
-    def counted(self, *args, **kwargs):
-        count[0] += 1
-        t0 = time.perf_counter()
-        try:
-            return originals[0](self, *args, **kwargs)
-        finally:
-            dt = time.perf_counter() - t0
-            count[1] += dt
-            count[2][getattr(naming, "name", None) or "other"] += dt
-
-    def named(original, name_of):
-        def call(self, *args, **kwargs):
-            outer = getattr(naming, "name", None)
-            naming.name = outer or name_of(self)
-            try:
-                return original(self, *args, **kwargs)
-            finally:
-                naming.name = outer
-        return call
-
-    program.launch_kernel = counted
-    launcher_class.__call__ = named(originals[1], lambda k: getattr(k.kernel, "__name__", "other"))
-    Kernel.__call__ = named(originals[2], lambda k: getattr(k.func, "__name__", "other"))
-    try:
-        yield count
-    finally:
-        program.launch_kernel, launcher_class.__call__, Kernel.__call__ = originals
+import hgsloc_plugin as hp
+from benchmarks.harness import (
+    case_errors,
+    case_priors,
+    is_metric,
+    kernel_launches,
+    load,
+    render_ms,
+    same_poses,
+    stage_clock,
+    worse_count,
+    write_keeping_notes,
+)
+from benchmarks.machine import StealClock
+from hgsloc_plugin.core.backend import default_batch_size
+from hgsloc_plugin.kernels.config import CUDA_LAYOUT  # (--layout cuda)
+from hgsloc_plugin.refine.config import PRESETS
+from hgsloc_plugin.refine.plan import make_plan
+from hgsloc_plugin.run.batch import as_queries
+from hgsloc_plugin.run.lockstep import Lockstep, refine_queries
 
 
 def batched(refiner: hp.HGSLocPlugin, items: list, batch_size: int, union_limit: float | None = None,
@@ -278,7 +111,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     seq_launches, batch_launches, device_calls = [0, 0.0], [0, 0.0], [0, 0]
     seq_kernels: dict[str, float] = defaultdict(float)  # seconds per kernel name, sequential rounds
     steal, steal_b = [], []
-    with stage_clock() as spent:
+    with stage_clock(refiner) as spent:
         for _ in range(rounds):
             results, sec = [], 0.0
             with kernel_launches() as launches, StealClock() as clock:
@@ -288,12 +121,11 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
                     sec += time.perf_counter() - t0
                     # the unit right after each query, so that it sees the machine the query ran on (one measurement
                     # on each side of the queries moved by up to 50 % on this shared machine); not counted
-                    counted = [*launches[:2], defaultdict(float, launches[2])]
-                    units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
-                    launches[:] = counted
+                    with kernel_launches():  # the unit's own launches count there, not in the queries'
+                        units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
             seq_sec.append(sec / n)
-            seq_launches = [a + b for a, b in zip(seq_launches, launches[:2])]
-            for k, v in launches[2].items():
+            seq_launches = [seq_launches[0] + launches.count, seq_launches[1] + launches.seconds]
+            for k, v in launches.by_kernel.items():
                 seq_kernels[k] += v
             steal.append(clock.share)
             sequential_stages = dict(spent)  # the stage split is the sequential queries'
@@ -302,7 +134,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
             spent.clear()
             spent.update(sequential_stages)
             bat_sec.append(sec_b)
-            batch_launches = [a + b for a, b in zip(batch_launches, launches[:2])]
+            batch_launches = [batch_launches[0] + launches.count, batch_launches[1] + launches.seconds]
             device_calls = [a + b for a, b in zip(device_calls, calls)]
             steal_b.append(clock.share)
             runs += [results, together]
@@ -386,7 +218,7 @@ def main() -> None:
     print("\n".join(split), flush=True)
     if a.out:
         write_keeping_notes(a.out, ["# Throughput (`benchmarks/throughput.py`)", "",
-                                    f"Regenerate: `python benchmarks/throughput.py --out {a.out}`.", "", *head, *rows,
+                                    f"Regenerate: `python -m benchmarks.throughput --out {a.out}`.", "", *head, *rows,
                                     *split])
 
 

@@ -1,6 +1,6 @@
 """Tile lists by footprint: entries and times with the ellipse test against the whole box, in one run.
 
-Usage: python benchmarks/tile_lists.py [--cases snow_sharp snow lego room room_x20] [--repeats 12] [--out FILE]
+Usage: python -m benchmarks.tile_lists [--cases snow_sharp snow lego room room_x20] [--repeats 12] [--out FILE]
 
 Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set)
 and per scoring size the default refinement uses: the tile-list entries of one render with ``RasterConfig.tile_test``
@@ -13,20 +13,12 @@ bit for bit (images, costs, derivatives).
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from derivative_pass import compared_rows, median_ms, table_main  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.core.image import resize_image  # noqa: E402
-from hgsloc_plugin.render import read_rows  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.derivative_pass import compared_rows, median_ms, table_main
+from hgsloc_plugin.core.image import resize_image
+from hgsloc_plugin.render import read_rows
 
 HEADER = ("| case | Gaussians rendered | size | entries: box / ellipse | render (ms): box / ellipse | "
           "12-pose cost (ms): box / ellipse | derivative pass (ms): box / ellipse | speed-up: render / cost / "

@@ -1,76 +1,62 @@
 """The CPU's serial tile sort alone: its time per pose against another checkout's, measured in the same run.
 
-Usage: python benchmarks/tile_sort.py --before DIR [--cases snow_sharp room room_x20] [--rounds 3]
+Usage: python -m benchmarks.tile_sort --before DIR [--cases snow_sharp room room_x20] [--rounds 3]
                                       [--repeats 30] [--out FILE]
 
-Per case (the maps and first query of ``benchmarks/throughput.py``; the densified room through its working set),
-at the final scoring size, on poses about one pixel around the query's prior: the serial tile sort kernel
-(``RasterConfig.sort="serial"``, ``kernels/tile_sort.py``) timed alone, the device synchronised on each side of
-it (``Renderer._sort`` wrapped while the renderer's projection and sort run), for one pose (median of
-``--repeats`` calls) and per pose of a 12-pose batch; then the same in the checkout ``DIR`` (the code before a
-change: a ``git worktree`` with ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its
-``kernels/`` and ``adapters/``, as ``startup.py --before`` needs; this script runs on both sides, each importing
-its side's package, which the child reports and the parent checks). Each side runs in processes of its own,
-``--rounds`` times, alternating; a row gives the median over the rounds, the speed-up (before / this checkout) and
-whether both made the same tile lists (their starts and entries, bit for bit), and the share of the CPU time the
-hypervisor took meanwhile (``benchmarks/machine.py``).
+Per case (the maps and first query of ``benchmarks/harness.py``; the densified room through its working set), at the
+final scoring size, on poses about one pixel around the query's prior: the serial tile sort kernel
+(``RasterConfig.sort="serial"``, ``kernels/tile_sort.py``) timed alone (its launches' seconds in
+``kernels.launch.timed_launches`` while the renderer renders: on the CPU a launch runs its kernel), for one pose
+(median of ``--repeats`` calls) and per pose of a 12-pose batch; then the same in the checkout ``DIR`` (the code
+before a change: a ``git worktree`` with ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its
+``kernels/`` and ``adapters/``, as ``startup.py --before`` needs; this script runs on both sides, each importing its
+side's package, which the child reports and the parent checks). Each side runs in processes of its own, ``--rounds``
+times, alternating; a row gives the median over the rounds, the speed-up (before / this checkout) and whether both
+made the same tile lists (their starts and entries, bit for bit), and the share of the CPU time the hypervisor took
+meanwhile (``benchmarks/machine.py``).
 """
 
 from __future__ import annotations
 
 import hashlib
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from machine import alternate, before_args, before_parser, run_child, write_before_table  # noqa: E402
+from benchmarks.machine import alternate, before_args, before_parser, run_child, write_before_table
 
 
 def child(case: str, repeats: int) -> dict:
     """Times of the sort alone in the package this process imports (the ``--child`` side), and where that package
     lies (``checkout``)."""
-    import importlib
-
-    import taichi as ti
 
     import hgsloc_plugin as hp
+    from benchmarks import harness
     from hgsloc_plugin.evaluation.noise import se3_noise
+    from hgsloc_plugin.kernels import launch
     from hgsloc_plugin.refine.plan import make_plan
-
-    throughput = importlib.import_module("throughput")  # after the package: it puts this checkout first on the path
-    cam, scene, qs, bg = throughput.load(case)
-    prior = throughput.case_priors(case, qs, 2.0, 1.0)[0]
+    cam, scene, qs, bg = harness.load(case)
+    prior = harness.case_priors(case, qs, 2.0, 1.0)[0]
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg), raster=hp.RasterConfig(sort="serial"))
     plan = make_plan(refiner.config, scene, cam, prior, hp.QueryPrior())
     f = 0.5 * (plan.cam_final.fx + plan.cam_final.fy)
     poses = [se3_noise(prior, np.degrees(1.0 / f), plan.depth / f, np.random.default_rng(s)) for s in range(12)]
-    renderer = refiner._working_set(plan)
+    renderer = refiner.renderer_for(plan)
     renderer.render_full(plan.cam_final, poses[:1], bg)
     renderer = getattr(renderer, "covering", lambda p: renderer)(poses)  # the working set's renderer
-    spent: list[float] = []
-    sort = renderer._sort
-
-    def timed(*args):
-        ti.sync()
-        t0 = time.perf_counter()
-        sort(*args)
-        ti.sync()
-        spent.append(time.perf_counter() - t0)
-
-    renderer._sort = timed
+    if not hasattr(launch, "timed_launches"):
+        raise SystemExit(f"{hp.__file__}: this checkout predates kernels.launch.timed_launches (2026-12-06), which "
+                         "times the sort kernel here: compare with a later one")
     out = {"checkout": str(Path(hp.__file__).resolve().parents[1])}
     for label, batch in (("one", poses[:1]), ("batch", poses)):
-        ws = renderer.workspace(plan.cam_final, len(batch))
-        renderer._geometry(plan.cam_final, batch, ws, bg)  # warm-up
-        spent.clear()
+        renderer.render_full(plan.cam_final, batch, bg)  # warm-up
+        spent = []
         for _ in range(repeats):
-            renderer._geometry(plan.cam_final, batch, ws, bg)
+            with launch.timed_launches() as launches:  # on the CPU a launch runs its kernel: the sort's own time
+                renderer.render_full(plan.cam_final, batch, bg)
+            spent.append(launches.by_kernel[SORT_KERNEL])
         out[label] = 1000 * float(np.median(spent)) / len(batch)
+        ws = renderer.workspace(plan.cam_final, len(batch))  # the buffers the renders used
         starts = ws.tile_start.to_numpy()[:len(batch)]
         lists = renderer.pool.lists.isect.to_numpy()[:int(starts[:, -1].sum())]
         out[label + "_lists"] = hashlib.sha256(starts.tobytes() + lists.tobytes()).hexdigest()[:16]
@@ -79,6 +65,10 @@ def child(case: str, repeats: int) -> dict:
             out.update(gaussians=renderer.n, visible=int((nt > 0).sum()), entries=int(starts[0, -1]),
                        size=f"{plan.cam_final.width}x{plan.cam_final.height}")
     return out
+
+
+#: the serial sort kernel's name (``kernels/tile_sort.py``), as ``LaunchTimes.by_kernel`` names it
+SORT_KERNEL = "tile_sort"
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """Trials: the real 7-Scenes localizer errors as the test distribution, applied to many views of many scenes.
 
-Usage: python benchmarks/trials.py [--per-cell 100] [--scenes room stripes donut lego snow_sharp snow]
+Usage: python -m benchmarks.trials [--per-cell 100] [--scenes room stripes donut lego snow_sharp snow]
     [--localizers ace glace marepo dfnet hloc] [--jobs 2] [--raw trials.jsonl] [--out benchmarks/trials.md]
-    [--compare other.jsonl]; python benchmarks/trials.py --from-raw trials.jsonl [--compare other.jsonl] tabulates
+    [--compare other.jsonl]; python -m benchmarks.trials --from-raw trials.jsonl [--compare other.jsonl] tabulates
     a kept run (``--compare``: trial by trial against another run's raw file, on the trials both hold).
 
 Errors: for each localizer, the camera-frame error ``E = T_est T_gt^-1`` of every one of its 17,000 7-Scenes
@@ -47,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.machine import ROOT, module_command
+
 DATA = ROOT.parent / "shared" / "data"
 LOCALIZERS = ("ace", "glace", "marepo", "dfnet", "hloc")
 SCENES = ("room", "stripes", "donut", "lego", "snow_sharp", "snow")
@@ -223,18 +224,10 @@ def plan_trials(scenes, localizers, per_cell: int, n_errors: dict[str, int], n_v
 def localizer_errors(method: str):
     """(errors [M] as camera-frame ``Pose``s, inlier counts [M] or None) of a localizer on all 7-Scenes test
     frames, in the pGT files' order."""
-    from adapters import read_poses
-    from adapters.confidence import record_inliers
+    from benchmarks import harness
 
-    errs, counts = [], []
-    for scene_dir in sorted((DATA / "poses" / "7scenes").glob("*")):
-        est, gt = read_poses(scene_dir / f"{method}.txt"), read_poses(scene_dir / "pgt_sfm_test.txt")
-        by_key = {n.replace("/", "-"): n for n in est}
-        for n, g in gt.items():
-            k = by_key.get(n.replace("/", "-"))
-            if k is not None and est[k] is not None and g is not None:
-                errs.append(est[k] @ g.inv())
-                counts.append(record_inliers(est.dialect, est.record(k).tokens))
+    counts: list = []
+    errs = harness.localizer_errors(method, counts)
     return errs, (counts if any(c is not None for c in counts) else None)
 
 
@@ -402,7 +395,6 @@ def main() -> None:
                [x for x in LOCALIZERS if any(r["localizer"] == x for r in rows)], args,
                f"{len(rows)} trials from {args.from_raw}")
         return
-    sys.path.insert(0, str(ROOT))
     if not (DATA / "poses" / "7scenes").exists():
         sys.exit(f"trials: {DATA / 'poses' / '7scenes'} not found (the localizer errors)")
     scenes = [s for s in args.scenes if available(s) is None]
@@ -426,9 +418,9 @@ def main() -> None:
         p.unlink(missing_ok=True)
     env = dict(os.environ)  # each process its share of the cores, unless HGSLOC_CPU_THREADS says otherwise
     env.setdefault("HGSLOC_CPU_THREADS", str(max(1, (os.cpu_count() or 1) // args.jobs)))
-    cmd = [sys.executable, __file__, "--per-cell", str(args.per_cell), "--preset", args.preset, "--scenes", *scenes,
+    cmd = [*module_command(__file__), "--per-cell", str(args.per_cell), "--preset", args.preset, "--scenes", *scenes,
            "--localizers", *args.localizers]
-    procs = [subprocess.Popen(cmd + ["--raw", str(p), "--shard", f"{k}/{args.jobs}"], env=env)
+    procs = [subprocess.Popen(cmd + ["--raw", str(p), "--shard", f"{k}/{args.jobs}"], env=env, cwd=ROOT)
              for k, p in enumerate(parts)]
     codes = [p.wait() for p in procs]
     if any(codes):

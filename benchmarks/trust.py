@@ -1,6 +1,6 @@
 """Trust benchmark: is a returned pose ever worse than its prior, and does the confidence say which to trust?
 
-Usage: python benchmarks/trust.py [--scenes snow_sharp snow lego room donut] [--queries 6] [--draws 3]
+Usage: python -m benchmarks.trust [--scenes snow_sharp snow lego room donut] [--queries 6] [--draws 3]
     [--out benchmarks/trust.md]
 
 Scenes (real pixels first):
@@ -50,19 +50,14 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from real_photos import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes  # noqa: E402
-
-import hgsloc_plugin as hp  # noqa: E402
-from hgsloc_plugin.adapters.confidence import inlier_trust  # noqa: E402
-from hgsloc_plugin.cli.demo.queries import degrade, query_poses  # noqa: E402
-from hgsloc_plugin.cli.demo.run import QUERY_CAMERA  # noqa: E402
-from hgsloc_plugin.cli.demo.scene import make_room_scene  # noqa: E402
-from hgsloc_plugin.evaluation.noise import se3_noise  # noqa: E402
-from hgsloc_plugin.refine.plan import median_depth  # noqa: E402
+import hgsloc_plugin as hp
+from benchmarks.harness import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes
+from hgsloc_plugin.adapters.confidence import inlier_trust
+from hgsloc_plugin.cli.demo.queries import degrade, query_poses
+from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+from hgsloc_plugin.cli.demo.scene import make_room_scene
+from hgsloc_plugin.evaluation.noise import se3_noise
+from hgsloc_plugin.refine.plan import median_depth
 
 LEVELS = ((1.0, 0.5), (3.0, 1.0), (10.0, 3.0), (30.0, 10.0))
 WORSE_CM, WORSE_DEG = 1.0, 0.5

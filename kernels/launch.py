@@ -13,13 +13,19 @@ Taichi's path. A signature the fast path does not cover (template or matrix argu
 autodiff, a non-contiguous host array) keeps Taichi's path; so does a Taichi reset (a new program).
 :func:`empty` makes a device array without Taichi's zero fill, for arrays an upload or a kernel fills whole.
 Written against Taichi 1.7's internals (``kernel_impl.Kernel``, ``ScalarNdarray``), the version the package pins;
-``HGSLOC_FAST_LAUNCH=0`` turns both off.
+``HGSLOC_FAST_LAUNCH=0`` turns both off. :func:`timed_launches` times the launches made through launchers (for
+measurements).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 import taichi as ti
@@ -32,6 +38,43 @@ from taichi.types import ndarray_type, primitive_types
 from taichi.types.utils import is_signed
 
 _ENABLED = os.environ.get("HGSLOC_FAST_LAUNCH", "1") != "0"
+
+
+@dataclass
+class LaunchTimes:
+    """The launches made through :class:`Launcher` inside :func:`timed_launches`.
+
+    Attributes:
+        count: how many.
+        seconds: the seconds in Taichi's launch call (on the CPU the kernel's run, on CUDA the enqueue and any wait
+            for a host array); a signature's first call, or one the fast path does not cover, counts Taichi's
+            whole call. What the launcher spends setting arguments stays outside (host time).
+        by_kernel: those seconds per kernel name ({name: s}).
+    """
+
+    count: int = 0
+    seconds: float = 0.0
+    by_kernel: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+
+    def add(self, name: str, seconds: float) -> None:
+        self.count += 1
+        self.seconds += seconds
+        self.by_kernel[name] += seconds
+
+
+_TIMERS: list[LaunchTimes] = []  # the active timers, innermost last
+
+
+@contextlib.contextmanager
+def timed_launches() -> Iterator[LaunchTimes]:
+    """The launches made inside, counted in the :class:`LaunchTimes` yielded; with timers nested, each launch counts
+    in the innermost only (so that an inner measurement can be left out of an outer one)."""
+    times = LaunchTimes()
+    _TIMERS.append(times)
+    try:
+        yield times
+    finally:
+        _TIMERS.remove(times)
 
 
 def _signature(value) -> tuple:
@@ -87,19 +130,28 @@ class Launcher:
         self.kernel = kernel
         self.primal = getattr(kernel, "_primal", None)
         self.plans: dict[tuple, tuple | None] = {}
+        self.name = getattr(kernel, "__name__", None) or getattr(self.primal, "func", kernel).__name__
 
     def __call__(self, *args):
         sig = tuple(_signature(a) for a in args)
         plan = self.plans.get(sig, False)
         prog = impl.get_runtime().prog
+        t0 = time.perf_counter() if _TIMERS else None
         if plan and plan[0] is prog and impl.get_runtime().target_tape is None:
             _, t_kernel, data, setters = plan
             ctx = t_kernel.make_launch_context()
             for i, (set_arg, value) in enumerate(zip(setters, args)):
                 set_arg(ctx, (i,), value)
-            prog.launch_kernel(data, ctx)
+            if t0 is None:
+                prog.launch_kernel(data, ctx)
+            else:
+                t0 = time.perf_counter()
+                prog.launch_kernel(data, ctx)
+                _TIMERS[-1].add(self.name, time.perf_counter() - t0)
             return None
         out = self.kernel(*args)
+        if t0 is not None and _TIMERS:
+            _TIMERS[-1].add(self.name, time.perf_counter() - t0)
         if plan is False or (plan is not None and plan[0] is not prog):
             self.plans[sig] = self._plan(args)
         return out

@@ -202,8 +202,8 @@ def _private_reaches(f: Path) -> list[str]:
 
 def test_no_reach_into_another_modules_or_objects_private_names():
     """A name that starts with ``_`` is used only in its own module, and as an attribute only on ``self``, ``cls`` or
-    an object of the same class: in the package and its tests."""
-    bad = [r for folder in ("hgsloc_plugin", "kernels", "adapters", "tests")
+    an object of the same class: in the package, its tests and the benchmarks."""
+    bad = [r for folder in ("hgsloc_plugin", "kernels", "adapters", "tests", "benchmarks")
            for f in sorted((ROOT / folder).rglob("*.py")) for r in _private_reaches(f)]
     assert not bad, bad
 

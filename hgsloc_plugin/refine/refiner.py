@@ -62,6 +62,9 @@ class Refiner:
         #: a trace hook for measurements (benchmarks): called as ``on_judged(candidate, verdict, plan)`` after the
         #: acceptance rule judged each route's candidate, in the order they ran; None: nothing is called
         self.on_judged: Callable[[Candidate, Verdict, Plan], None] | None = None
+        #: a trace hook for measurements: called as ``on_stage(stage, seconds)`` after each search level
+        #: ("search WxH"), polish stage ("polish WxH") and acceptance rule ("rule"); None: nothing is called
+        self.on_stage: Callable[[str, float], None] | None = None
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
                prior: QueryPrior | None = None, **settings: float | None) -> RefineResult:
@@ -92,9 +95,9 @@ class Refiner:
         img, camera = undistort(img, camera)  # a photo through a lens with distortion: to its pinhole camera
 
         plan = make_plan(cfg, self.scene, camera, coarse_pose, prior)
-        renderer = self._working_set(plan)
+        renderer = self.renderer_for(plan)
         ctx = QueryContext(cfg, plan, renderer, Scorer(renderer, cfg.metric, cfg.background, cfg.tuning.mask_alpha),
-                           img, name)
+                           img, name, self.on_stage)
         routes = cfg.route_choice()
         main_route = search_route if routes.main == "search" else gradient_route
         tried: list[tuple[Candidate, Verdict]] = []
@@ -130,14 +133,16 @@ class Refiner:
     def _judged(self, ctx: QueryContext, cand: Candidate, structural: bool = True) -> tuple[Candidate, Verdict]:
         """``cand`` and the rule's verdict on it; ``structural`` False: without the alignment test."""
         cfg = self.config
-        verdict = judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
-                        lattice=cfg.tuning.neighbourhood == "lattice",
-                        structural=structural and METRICS[cfg.metric].structural, pivot=cfg.tuning.pivot, name=ctx.name)
+        with ctx.timed("rule"):
+            verdict = judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
+                            lattice=cfg.tuning.neighbourhood == "lattice",
+                            structural=structural and METRICS[cfg.metric].structural, pivot=cfg.tuning.pivot,
+                            name=ctx.name)
         if self.on_judged is not None:
             self.on_judged(cand, verdict, ctx.plan)
         return cand, verdict
 
-    def _working_set(self, plan: Plan) -> RendererLike:
+    def renderer_for(self, plan: Plan) -> RendererLike:
         """The renderer the routes use: a :class:`WorkingSet` that follows the poses scored (region radius
         ``working_set_pixels`` of image motion at the final size), or the whole map when
         ``Tuning.working_set`` is off or the map has fewer than ``working_set_min`` Gaussians."""

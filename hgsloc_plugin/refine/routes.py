@@ -8,7 +8,10 @@ rule (``trust.judge``) then judges, with the costs and the effort that led to it
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +30,8 @@ from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 @dataclass
 class QueryContext:
     """One query as the routes see it: settings, plan, the renderer (whole map or working set), the scorer (its
-    render count spans every route) and the query image [H, W, 3] float32 at its own size."""
+    render count spans every route), the query image [H, W, 3] float32 at its own size and the refiner's stage
+    trace hook (``Refiner.on_stage``)."""
 
     config: RefineConfig
     plan: Plan
@@ -35,6 +39,19 @@ class QueryContext:
     scorer: Scorer
     image: np.ndarray
     name: str | None = None
+    on_stage: Callable[[str, float], None] | None = None
+
+    @contextlib.contextmanager
+    def timed(self, stage: str) -> Iterator[None]:
+        """Reports the seconds inside to ``on_stage`` as ``stage`` (nothing when no hook is set)."""
+        if self.on_stage is None:
+            yield
+            return
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.on_stage(stage, time.perf_counter() - t0)
 
     @property
     def judge_cam(self) -> Camera:
@@ -160,8 +177,9 @@ def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tu
         space = PaperSpace(pose, s_rot, s_t)
     else:
         space = LatticeSpace(pose, math.radians(s_rot), s_t, plan.depth if cfg.tuning.pivot else 0.0)
-    lr = best_first(space, cost, ctx.scorer, plan.allows, budget=budget, patience=cfg.tuning.patience,
-                    weight=cfg.tuning.heuristic_weight, depth_cost=cfg.tuning.depth_cost, pattern=pattern)
+    with ctx.timed(f"search {cam.width}x{cam.height}"):
+        lr = best_first(space, cost, ctx.scorer, plan.allows, budget=budget, patience=cfg.tuning.patience,
+                        weight=cfg.tuning.heuristic_weight, depth_cost=cfg.tuning.depth_cost, pattern=pattern)
     cand.expansions += lr.expansions
     cand.history.extend(lr.history)
     cand.levels.append(LevelStats(s_rot, s_t, cam.width, cam.height, lr.expansions, lr.renders, lr.best_cost,
@@ -180,9 +198,11 @@ def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) 
     for i, cam in enumerate(cams):
         q = ctx.scorer.window_query(cam, ctx.image)
         last = i == len(cams) - 1  # a stage before a finer one stops at a coarser step: the next goes on
-        pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth, iterations=cfg.tuning.polish_iterations,
-                             allowed=plan.allows, background=cfg.background, mask_alpha=cfg.tuning.mask_alpha,
-                             converged=FINAL if last else STAGE,
-                             line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
+        with ctx.timed(f"polish {cam.width}x{cam.height}"):
+            pose, stats = polish(ctx.renderer, cam, q, pose, depth=plan.depth,
+                                 iterations=cfg.tuning.polish_iterations, allowed=plan.allows,
+                                 background=cfg.background, mask_alpha=cfg.tuning.mask_alpha,
+                                 converged=FINAL if last else STAGE,
+                                 line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
         cand.polish.append(stats)
     return pose

@@ -143,3 +143,34 @@ def test_the_trace_hook_sees_every_judged_route_in_order():
     assert np.array_equal(traced.pose.as_array(), plain.pose.as_array())
     assert seen and seen[0][0] == "search" and seen[-1][1] == traced.rejected
     assert np.array_equal(seen[-1][2].as_array(), traced.pose.as_array())
+
+
+def test_lockstep_batches_through_the_batching_protocol_and_runs_other_renderers_alone(caplog):
+    """Lockstep batching asks a renderer for what ``BatchingRenderer`` names: the package's renderer is one (its
+    queries' calls share launches); a backend with only ``RendererLike``'s names is not, and its queries run in
+    lockstep without shared launches (said once in the log), to the same poses as one at a time."""
+    import logging
+
+    from hgsloc_plugin.render import BatchingRenderer
+    from hgsloc_plugin.run.batch import as_queries
+    from hgsloc_plugin.run.lockstep import Lockstep, refine_queries
+
+    cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
+    other = hp.render(scene, cam, hp.Pose(gt.qvec, gt.tvec + np.array([0.02, 0.0, 0.0])))
+    items = [(img, cam, prior, "a"), (other, cam, prior, "b")]
+    renderer = get_renderer(scene)
+    assert isinstance(renderer, BatchingRenderer) and not isinstance(ProtocolOnly(renderer), BatchingRenderer)
+    plain = hp.HGSLocPlugin(scene).refine_many(items, progress=False, batch_size=1)
+    counts = {}
+    for label, backend in (("batching", renderer), ("protocol only", ProtocolOnly(renderer))):
+        gate = Lockstep(2)
+        with caplog.at_level(logging.INFO, logger="hgsloc_plugin.run.lockstep"):
+            pairs = sorted(refine_queries(hp.HGSLocPlugin(scene, renderer=backend), as_queries(items), gate=gate),
+                           key=lambda qr: qr[0].index)
+        for (_, r), p in zip(pairs, plain):
+            assert np.array_equal(r.pose.as_array(), p.pose.as_array()), label
+        counts[label] = (gate.requests, gate.launches)
+    assert counts["batching"][1] < counts["batching"][0]  # shared launches
+    assert counts["protocol only"][1] == counts["protocol only"][0] > 0  # each call alone
+    assert sum("ProtocolOnly is no BatchingRenderer" in r.getMessage() for r in caplog.records) == 1

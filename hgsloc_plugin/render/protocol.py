@@ -1,4 +1,5 @@
-"""What the refinement needs of a renderer: the seam a second backend (or a batched renderer) plugs into."""
+"""What the refinement needs of a renderer (:class:`RendererLike`), and what lockstep batching needs besides
+(:class:`BatchingRenderer`): the seam a second backend plugs into."""
 
 from __future__ import annotations
 
@@ -68,3 +69,26 @@ class RendererLike(Protocol):
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float,
                     max_rotation_deg: float) -> RendererLike:
         """A renderer of the Gaussians some pose within the region around ``pose`` can see (same images)."""
+
+
+@runtime_checkable
+class BatchingRenderer(RendererLike, Protocol):
+    """A renderer whose ``window_cost`` and ``pose_gradient`` calls from several queries go into one launch
+    (``run/lockstep.py``): calls on renderers of one ``root`` are grouped; ``union`` gives the renderer of their
+    Gaussians together; ``stack_window_queries`` puts the queries' statistics side by side, and each pose names
+    its query's slot (``query_index``). A renderer without these runs each query's calls alone (the same poses,
+    no shared launches). Implemented by :class:`~hgsloc_plugin.render.Renderer`.
+    """
+
+    @property
+    def root(self) -> BatchingRenderer:
+        """The renderer this one's Gaussians were selected from (itself when it is not a selection)."""
+
+    def union(self, renderers: Sequence[BatchingRenderer]) -> BatchingRenderer:
+        """A renderer of the union of ``renderers``' Gaussians (all selections of this one), rendering each pose
+        as each of them does."""
+
+    @staticmethod
+    def stack_window_queries(stats: Sequence[object], out: object | None = None, slots=None) -> object:
+        """Query statistics of one size stacked on the device, query ``k`` in slot ``slots[k]`` (default ``k``) of
+        ``out`` (default: a new array of ``len(stats)`` slots); returns ``out``."""

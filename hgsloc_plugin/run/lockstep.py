@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+import logging
 import threading
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
@@ -37,14 +38,16 @@ import taichi as ti
 
 from ..core.backend import default_union_limit
 from ..core.camera import Camera
-from ..render.renderer import Renderer
+from ..render.protocol import BatchingRenderer, RendererLike
+
+logger = logging.getLogger(__name__)
 
 #: unions of working sets a :class:`Lockstep` keeps for the next rounds (each a copy of its Gaussians on the device)
 UNIONS_KEPT = 4
 #: query slots per image size a :class:`Lockstep` keeps on the device, per query of its batch
 SLOTS_PER_QUERY = 2
 #: the batched calls, and how each one's keyword values are read from its arguments
-_BATCHED = {name: inspect.signature(getattr(Renderer, name)) for name in ("window_cost", "pose_gradient")}
+_BATCHED = {name: inspect.signature(getattr(BatchingRenderer, name)) for name in ("window_cost", "pose_gradient")}
 
 
 class BatchCancelled(BaseException):
@@ -84,7 +87,7 @@ class Lockstep:
             raise ValueError(f"union_limit must be >= 1, got {union_limit!r}")
         self.batch_size = int(batch_size)
         self.union_limit = union_limit
-        self._unions: dict[tuple, tuple[list, Renderer]] = {}
+        self._unions: dict[tuple, tuple[list, BatchingRenderer]] = {}
         self._cond = threading.Condition()
         self._cancelled = False
         self._slots: dict[tuple, QuerySlots] = {}  # per image size
@@ -201,7 +204,7 @@ class Lockstep:
             s.request = s.key = s.arguments = None
             s.resume.set()
 
-    def _together(self, group: list[_Slot]) -> tuple[list[_Slot], Renderer]:
+    def _together(self, group: list[_Slot]) -> tuple[list[_Slot], BatchingRenderer]:
         """The calls of ``group`` (one map, method, image size and settings) that go into one launch, and the renderer
         it renders from: all of them and their renderers' union when that is within ``union_limit``, else those
         of the most common renderer (the first met on a tie) and that renderer."""
@@ -213,11 +216,11 @@ class Lockstep:
         best = max(count, key=count.get)  # max keeps the first of equal counts
         return [s for s in group if id(s.request[0]) == best], targets[best]
 
-    def _union(self, targets: list[Renderer]) -> Renderer | None:
+    def _union(self, targets: list[BatchingRenderer]) -> BatchingRenderer | None:
         """The renderer of the union of ``targets``' Gaussians (``Renderer.union``), or None when it holds
         more than ``union_limit`` times the largest's (the last ``UNIONS_KEPT`` are kept: the groups of a batch
         repeat until a query selects a new working set, and each union holds a copy of its Gaussians)."""
-        def make() -> Renderer | None:
+        def make() -> BatchingRenderer | None:
             if not self.union_limit > 1.0:
                 return None
             union = targets[0].root.union(targets)
@@ -225,7 +228,7 @@ class Lockstep:
 
         return _kept_by_identity(self._unions, sorted(targets, key=id), UNIONS_KEPT, make)
 
-    def _launch(self, group: list[_Slot], target: Renderer) -> None:
+    def _launch(self, group: list[_Slot], target: BatchingRenderer) -> None:
         """One launch for the calls of ``group`` (same map, method, image size and settings) on ``target`` (their
         renderer or their renderers' union: :meth:`_together`), each pose with its call's camera."""
         _, name, _, _ = group[0].request
@@ -267,7 +270,7 @@ class QuerySlots:
         self.array = None
         self.held: dict[int, tuple[object, int]] = {}  # id(statistics) -> (statistics, slot), least recent first
 
-    def place(self, target: Renderer, stats: list) -> tuple[object, dict[int, int]]:
+    def place(self, target: BatchingRenderer, stats: list) -> tuple[object, dict[int, int]]:
         """(the device array [capacity, H, W, 3, NQ], {id(statistics): slot}) with every one of ``stats`` (at most
         ``capacity``, of this size) in its slot."""
         if self.array is None:
@@ -306,7 +309,9 @@ def _kept_by_identity(cache: dict, objects: list, size: int, make: Callable[[], 
 def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, dict | None]:
     """(what the call must share with others to go into one launch, its arguments by name with defaults
     applied), or (None, None) when it goes alone; worked out once, when the call is made."""
-    if name not in _BATCHED or not isinstance(target, Renderer):
+    if name not in _BATCHED:
+        return None, None
+    if not _batches(target):
         return None, None
     try:
         bound = _BATCHED[name].bind(None, *args, **kwargs)
@@ -321,6 +326,22 @@ def _batch_key(target, name: str, args: tuple, kwargs: dict) -> tuple[object, di
         return None, None
     return (id(target.root), name, (camera.width, camera.height), tuple(float(v) for v in np.ravel(a["background"])),
             float(a["mask_alpha"]), bool(a.get("luminance", False))), a
+
+
+_BATCHES: dict[type, bool] = {}  # renderer type -> whether it is a BatchingRenderer (checked once per type)
+
+
+def _batches(target) -> bool:
+    """Whether ``target`` is a :class:`BatchingRenderer`; a type that is not is named once in the log (its calls
+    run alone)."""
+    kind = type(target)
+    known = _BATCHES.get(kind)
+    if known is None:
+        known = _BATCHES[kind] = isinstance(target, BatchingRenderer)
+        if not known:
+            logger.info("lockstep: %s is no BatchingRenderer (root, union, stack_window_queries): each query's "
+                        "calls run alone, the same poses without shared launches", kind.__name__)
+    return known
 
 
 def _invoke(target, name: str, args: tuple, kwargs: dict) -> tuple:
@@ -364,6 +385,6 @@ class DeviceProxy:
 
         def call(*args, **kwargs):
             out = self._gate.call(self._slot, self._target, name, args, kwargs)
-            return DeviceProxy(self._gate, self._slot, out) if isinstance(out, Renderer) else out
+            return DeviceProxy(self._gate, self._slot, out) if isinstance(out, RendererLike) else out
 
         return call

@@ -831,3 +831,21 @@ def test_tile_and_pixel_derivative_blends_agree(name):
         assert pixel.grad_masks == (masks == "on")
         assert_same_to_rounding(images, pixel.render_derivatives(cam, poses), system,
                                 pixel.pose_gradient(cam, poses, pixel.upload_window_query(img)))
+
+
+def test_the_polish_damping_state():
+    """``Damping``: a failed trial raises the damping x10, limits the next trial's motion and marks the model as
+    not holding; ``max_failures`` in a row stop; a kept step lowers the damping and clears the limit."""
+    from hgsloc_plugin.refine.polish import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, RETRY_SHRINK, Damping
+
+    lm = Damping(max_failures=2)
+    assert not lm.failed(4.0) and lm.lam == LAMBDA0 * 10 and lm.retry_limit == RETRY_SHRINK * 4.0
+    assert not lm.model_holds and lm.failed(2.0)  # the second failure in a row stops
+    lm.kept()
+    assert lm.failures == 0 and lm.retry_limit == math.inf and lm.lam == LAMBDA0 * 10 * 10 * 0.1
+    while not lm.more():
+        pass
+    assert lm.lam == LAMBDA_MAX and lm.more()  # capped
+    for _ in range(40):
+        lm.kept()
+    assert lm.lam == LAMBDA_MIN

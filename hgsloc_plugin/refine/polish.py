@@ -160,6 +160,45 @@ def longer_pays(drop: float, linear: float, longer_from: float) -> bool:
     return drop >= linear or linear > 2.0 * longer_from * (linear - drop)
 
 
+@dataclass
+class Damping:
+    """One polish's Levenberg-Marquardt state across its trials.
+
+    Attributes:
+        max_failures: trials in a row that did not lower the cost before the polish stops.
+        lam: the damping added to the Hessian's diagonal (``LAMBDA_MIN`` to ``LAMBDA_MAX``).
+        failures: trials in a row that did not lower the cost.
+        retry_limit: image motion (pixels) the next trial must stay under (after a failed one; else inf).
+        model_holds: the last trial's outcome followed the model (no failure, no longer multiple paying).
+    """
+
+    max_failures: int
+    lam: float = LAMBDA0
+    failures: int = 0
+    retry_limit: float = math.inf
+    model_holds: bool = True
+
+    def more(self) -> bool:
+        """More damping (x10, at most ``LAMBDA_MAX``); True when it is at the most."""
+        self.lam = min(self.lam * 10.0, LAMBDA_MAX)
+        return self.lam >= LAMBDA_MAX
+
+    def failed(self, motion: float) -> bool:
+        """A trial of ``motion`` pixels did not lower the cost: more damping, the next trial at most
+        ``RETRY_SHRINK`` of it and line-searched (the model does not hold); True when that makes
+        ``max_failures`` in a row (the polish stops)."""
+        self.more()
+        self.model_holds = False
+        self.retry_limit = RETRY_SHRINK * motion
+        self.failures += 1
+        return self.failures >= self.max_failures
+
+    def kept(self) -> None:
+        """A trial lowered the cost and its step is kept: less damping (x0.1, at least ``LAMBDA_MIN``), no limit."""
+        self.lam = max(self.lam * 0.1, LAMBDA_MIN)
+        self.failures, self.retry_limit = 0, math.inf
+
+
 def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth: float, iterations: int,
            allowed: Callable[[Pose], bool], background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
            converged: Convergence = FINAL, max_failures: int = 3,
@@ -193,27 +232,13 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         stats.renders += len(cands)
         return cost_from_window(renderer.window_cost(camera, [T for _, T in cands], qstats, background, mask_alpha))
 
-    def failed(motion: float) -> bool:
-        """A trial of ``motion`` pixels that did not lower the cost: more damping, the next trial at most
-        ``RETRY_SHRINK`` of it and line-searched (the model does not hold); True when that makes ``max_failures``
-        in a row (the polish stops)."""
-        nonlocal lam, retry_limit, failures, model_holds
-        lam = min(lam * 10.0, LAMBDA_MAX)
-        model_holds = False
-        retry_limit = RETRY_SHRINK * motion
-        failures += 1
-        if failures >= max_failures:
-            stats.stopped = "no decrease"
-        return failures >= max_failures
-
     cost, g, H = evaluate(pose)
     stats = PolishStats(camera.width, camera.height, cost, cost, 1, 0, 0, 0.0, "iterations", H)
-    lam, failures, outside, reach = LAMBDA0, 0, 0, 1.0
-    model_holds = True  # the last trial's outcome followed the model (no failure, no longer multiple paying)
-    retry_limit = math.inf  # image motion the next trial must stay under (after a failed one)
+    lm = Damping(max_failures)
+    outside, reach = 0, 1.0
     while stats.passes < iterations:
         d = np.diag(H)
-        A = H + lam * np.diag(np.maximum(d, 1e-12 * max(float(d.max()), 1e-30)))
+        A = H + lm.lam * np.diag(np.maximum(d, 1e-12 * max(float(d.max()), 1e-30)))
         try:
             xi = np.linalg.solve(A, -g)
         except np.linalg.LinAlgError:
@@ -225,21 +250,20 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         if motion * reach < converged.step_px:  # reach: the multiple the last kept step needed (GN steps run short)
             stats.stopped = "converged"
             break
-        if motion > retry_limit:  # a retry barely shorter than the failed trial would fail again: more damping
-            lam = min(lam * 10.0, LAMBDA_MAX)
-            if lam >= LAMBDA_MAX:
+        if motion > lm.retry_limit:  # a retry barely shorter than the failed trial would fail again: more damping
+            if lm.more():
                 stats.stopped = "no decrease"
                 break
             continue
         trial = pose.perturbed_in_camera(xi[:3], xi[3:])
         if not allowed(trial):  # shorten the step (more damping) until it stays in the trust region
-            lam = min(lam * 10.0, LAMBDA_MAX)
+            at_most = lm.more()
             outside += 1
-            if outside > MAX_OUTSIDE or lam >= LAMBDA_MAX:
+            if outside > MAX_OUTSIDE or at_most:
                 stats.stopped = "trust region"
                 break
             continue
-        direct = (converged.direct > 0 and model_holds
+        direct = (converged.direct > 0 and lm.model_holds
                   and predicted_decrease(g, H, xi) >= converged.direct * converged.decrease * cost)
         if direct:
             reach = 1.0
@@ -254,7 +278,8 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                     cands, lc = cands + more, np.concatenate([lc, score(more)])
             j = int(np.argmin(lc))
             if not lc[j] < cost:  # no multiple lowers the cost: a failed trial, no derivative pass
-                if failed(motion):
+                if lm.failed(motion):
+                    stats.stopped = "no decrease"
                     break
                 continue
             longer = longer_from is None or len(cands) > 1  # else the first alone was scored: no extension
@@ -269,7 +294,7 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
                 j = j2
             m, trial = cands[j]
             reach = m
-            model_holds = m == line_search[0]
+            lm.model_holds = m == line_search[0]
             xi = m * xi
             motion = step_pixels(xi, f, depth)
             ends = None  # the step is taken on its rendered cost, without a derivative pass, and the stage ends
@@ -289,20 +314,20 @@ def polish(renderer: RendererLike, camera: Camera, qstats, pose: Pose, *, depth:
         stats.passes += 1
         if c2 < cost:
             if direct:  # a longer step would have paid (the slope g.xi of the pose before): line-search the next
-                model_holds = not longer_pays(cost - c2, -float(g @ xi), LONGER_FROM)
-            if model_holds and not cost - c2 >= MIN_GAIN * predicted_decrease(g, H, xi):
-                model_holds = False  # the step gained much less than its model predicted: line-search the next
+                lm.model_holds = not longer_pays(cost - c2, -float(g @ xi), LONGER_FROM)
+            if lm.model_holds and not cost - c2 >= MIN_GAIN * predicted_decrease(g, H, xi):
+                lm.model_holds = False  # the step gained much less than its model predicted: line-search the next
             negligible = cost - c2 < converged.decrease * cost
             pose, cost, g, H = trial, c2, g2, H2
             stats.cost_rendered = rendered
             stats.accepted_steps += 1
             stats.step_px = motion
-            lam = max(lam * 0.1, LAMBDA_MIN)
-            failures, retry_limit = 0, math.inf
+            lm.kept()
             if negligible:
                 stats.stopped = "converged"
                 break
-        elif failed(motion):
+        elif lm.failed(motion):
+            stats.stopped = "no decrease"
             break
     stats.cost, stats.jtj, stats.grad = cost, H, g
     if not math.isfinite(stats.cost):

@@ -174,3 +174,14 @@ def test_lockstep_batches_through_the_batching_protocol_and_runs_other_renderers
     assert counts["batching"][1] < counts["batching"][0]  # shared launches
     assert counts["protocol only"][1] == counts["protocol only"][0] > 0  # each call alone
     assert sum("ProtocolOnly is no BatchingRenderer" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_given_renderer_is_not_silently_replaced_on_ray_workers():
+    """Ray workers rebuild the refiner from the scene and settings: with a renderer of another backend, asking for
+    workers is an error that says so, before any work (the in-process path uses that renderer)."""
+    cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
+    scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
+    refiner = hp.HGSLocPlugin(scene, renderer=ProtocolOnly(get_renderer(scene)))
+    with pytest.raises(ValueError, match="does not travel to Ray workers"):
+        refiner.refine_many([(img, cam, prior, "a")], progress=False, workers=2)
+    assert not hp.HGSLocPlugin(scene).renderer_given

@@ -59,6 +59,8 @@ class Refiner:
         self.config = config or RefineConfig()
         self.raster = raster or RasterConfig()
         self.renderer = renderer if renderer is not None else get_renderer(scene, self.raster)
+        #: whether the renderer was given (another backend) rather than built from the scene and ``raster``
+        self.renderer_given = renderer is not None
         #: a trace hook for measurements (benchmarks): called as ``on_judged(candidate, verdict, plan)`` after the
         #: acceptance rule judged each route's candidate, in the order they ran; None: nothing is called
         self.on_judged: Callable[[Candidate, Verdict, Plan], None] | None = None

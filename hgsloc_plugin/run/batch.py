@@ -107,6 +107,10 @@ def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: 
              batch_size: int | None):
     """(query, result) pairs as they finish (``batch_size`` None only on Ray: each worker's default)."""
     if workers or ray_address:
+        if refiner.renderer_given:
+            raise ValueError("a renderer given to the refiner does not travel to Ray workers (each builds the "
+                             "package's renderer from the scene and RasterConfig): refine in this process "
+                             "(workers=0, no ray_address)")
         from .distributed import ray_results
 
         yield from ray_results(refiner.scene, refiner.config, refiner.raster, queries,

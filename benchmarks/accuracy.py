@@ -68,7 +68,9 @@ def main() -> None:
     lines = ["| scene | noise | config | heuristic | noise error t / R | refined t / R | improvement t / R | "
              "renders/q | derivative passes/q | s/q |", "|" + "---|" * 10]
     t_start = time.time()
-    for case in (room_case(a.queries), donut_case(a.donut_queries)):
+    for case in (room_case(a.queries), donut_case(a.donut_queries) if a.donut_queries else None):
+        if case is None and not a.donut_queries:
+            continue  # --donut-queries 0: the room only
         if case is None:
             lines.append("| donut.ply | skipped: ../shared/data/scenes/donut.ply not found |" + " |" * 8)
             continue

@@ -1,0 +1,74 @@
+"""A smoke run of each benchmark on its smallest case, in this process (kernels already loaded), as its
+regenerate command runs it (``python -m benchmarks.<name> ARGS``): it must finish and print its table.
+
+Those whose smallest case takes a few seconds run with the suite; the rest (8-90 s each on this 2-core machine:
+a search from wide priors, every heuristic, both backends' records) run when ``HGSLOC_BENCH_SMOKE=1`` is set, as
+``HGSLOC_BENCH_SMOKE=1 python -m pytest tests/test_benchmark_smoke.py``. ``trials`` has its own smoke run
+(``test_trials.py``); ``scale`` starts processes and Ray workers, as the Ray tests do.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+from .conftest import shared_path
+
+ROOT = Path(__file__).resolve().parents[1]
+ALL = os.environ.get("HGSLOC_BENCH_SMOKE") == "1"
+
+#: benchmark -> (its smallest case's arguments, shared data it reads or None, seconds: "fast" or "long")
+SMOKE = {
+    "derivative_pass": (["--cases", "room", "--repeats", "1"], None, "fast"),
+    "map_scale": (["--stages", "--k", "1"], None, "fast"),
+    "presets": (["--cases", "room", "--presets", "fast", "--rounds", "1"], None, "fast"),
+    "query_time": (["--child", "room", "--seeds", "7"], None, "fast"),
+    "rule_model": (["--cases", "room", "--noise", "0"], None, "fast"),
+    "startup": (["--child"], None, "fast"),
+    "throughput": (["--cases", "room", "--rounds", "1"], None, "long"),
+    "tile_lists": (["--cases", "room", "--repeats", "1"], None, "fast"),
+    "tile_sort": (["--child", "room", "--repeats", "1"], None, "fast"),
+    "accuracy": (["--queries", "1", "--paper-queries", "1", "--donut-queries", "0"], None, "long"),
+    "backends": (["--out", "{tmp}/record.json"], None, "long"),
+    "basin": (["--cases", "room", "--queries", "1"], None, "long"),
+    "curvature": (["--cases", "room"], None, "long"),
+    "distortion": (["--seeds", "0"], "snow", "long"),
+    "map_floor": (["--datasets", "lego", "--queries", "1", "--draws", "1"], "lego", "long"),
+    "real_photos": (["--datasets", "lego", "--heuristics", "cs", "--seeds", "1"], "lego", "long"),
+    "refine": (["--cases", "room", "--queries", "1"], None, "long"),
+    "render": (["--repeats", "1"], None, "long"),
+    "trust": (["--scenes", "room", "--queries", "1", "--draws", "1"], None, "long"),
+}
+
+
+def test_every_benchmark_has_a_smoke_run():
+    scripts = {p.stem for p in (ROOT / "benchmarks").glob("*.py") if '__name__ == "__main__"' in p.read_text()}
+    assert scripts - set(SMOKE) == {"trials", "scale"}, scripts - set(SMOKE)
+
+
+@pytest.mark.parametrize("name", sorted(SMOKE), ids=str)
+def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
+    args, data, length = SMOKE[name]
+    if length == "long" and not ALL:
+        pytest.skip("8-90 s: run with HGSLOC_BENCH_SMOKE=1")
+    if data is not None:
+        shared_path(data)
+    monkeypatch.syspath_prepend(str(ROOT))
+    monkeypatch.setattr(sys, "argv", [f"benchmarks/{name}.py", *(a.format(tmp=tmp_path) for a in args)])
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        try:
+            runpy.run_module(f"benchmarks.{name}", run_name="__main__")
+        except SystemExit as exc:
+            assert exc.code in (0, None), f"{name} exited with {exc.code}"
+    text = out.getvalue()
+    if name == "backends":  # its record goes to --out
+        assert (tmp_path / "record.json").stat().st_size > 0
+    else:
+        assert "|" in text or text.lstrip().startswith("{"), text[-2000:]  # a table row, or a child's JSON record

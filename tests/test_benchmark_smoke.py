@@ -1,7 +1,7 @@
 """A smoke run of each benchmark on its smallest case, in this process (kernels already loaded), as its
 regenerate command runs it (``python -m benchmarks.<name> ARGS``): it must finish and print its table.
 
-Those whose smallest case takes a few seconds run with the suite; the rest (8-90 s each on this 2-core machine:
+Those whose smallest case takes a few seconds run with the suite; the rest (5-110 s each on this 2-core machine:
 a search from wide priors, every heuristic, both backends' records) run when ``HGSLOC_BENCH_SMOKE=1`` is set, as
 ``HGSLOC_BENCH_SMOKE=1 python -m pytest tests/test_benchmark_smoke.py``. ``trials`` has its own smoke run
 (``test_trials.py``); ``scale`` starts processes and Ray workers, as the Ray tests do.
@@ -56,7 +56,7 @@ def test_every_benchmark_has_a_smoke_run():
 def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
     args, data, length = SMOKE[name]
     if length == "long" and not ALL:
-        pytest.skip("8-90 s: run with HGSLOC_BENCH_SMOKE=1")
+        pytest.skip("5-110 s: run with HGSLOC_BENCH_SMOKE=1")
     if data is not None:
         shared_path(data)
     monkeypatch.syspath_prepend(str(ROOT))

@@ -1,5 +1,6 @@
 """The benchmarks' shared harness: the cases (real photos, lego, the room and its densified copies, the
-7-Scenes-shaped job), their priors and errors, render timing, stage and launch clocks, and Markdown output.
+7-Scenes-shaped job), their priors and errors, render timing, the refiner's stage clock and Markdown output (the
+launch clock is the package's ``kernels.launch.timed_launches``).
 
 Run a benchmark as a module from the repository root: ``python -m benchmarks.<name> --help``.
 """
@@ -19,7 +20,6 @@ import numpy as np
 import hgsloc_plugin as hp
 from hgsloc_plugin.core.image import load_image
 from hgsloc_plugin.evaluation.noise import se3_noise
-from hgsloc_plugin.kernels.launch import timed_launches
 from hgsloc_plugin.refine.plan import make_plan, median_depth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -207,5 +207,3 @@ def stage_clock(refiner: hp.HGSLocPlugin):
     finally:
         refiner.on_stage = before
 
-
-kernel_launches = timed_launches  # the launches through the package's launchers: count, seconds, by kernel name

@@ -56,12 +56,12 @@ def checkout_env(checkout: Path) -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(checkout), str(ROOT), os.environ.get("PYTHONPATH", "")]))
 
 
-def module_command(file: str, checkout: Path | None = None) -> list[str]:
+def module_command(file: str, other_checkout: bool = False) -> list[str]:
     """The command that runs the benchmark whose ``__file__`` is ``file`` as ``python -m benchmarks.<name>`` (with
-    ``cwd=ROOT``). With ``checkout`` (run in ``checkout_env``'s environment): with ``-P``, so that the package comes
-    from the checkout first on ``PYTHONPATH``, not from the working directory; the benchmarks then come from the
-    checkout when it holds them as a package (``benchmarks/__init__.py``), else from this one."""
-    return [sys.executable, *(["-P"] if checkout is not None else []), "-m", f"benchmarks.{Path(file).stem}"]
+    ``cwd=ROOT``). ``other_checkout`` (run in ``checkout_env``'s environment): with ``-P``, so that the package
+    comes from the checkout first on ``PYTHONPATH``, not from the working directory; the benchmarks then come from
+    the checkout when it holds them as a package (``benchmarks/__init__.py``), else from this one."""
+    return [sys.executable, *(["-P"] if other_checkout else []), "-m", f"benchmarks.{Path(file).stem}"]
 
 
 def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
@@ -69,8 +69,8 @@ def run_child(script: str, checkout: Path | None, args: list[str]) -> dict:
     checkout's) and return the JSON object its last line prints; it must name, as ``checkout``, the folder its
     package came from, which is checked."""
     env = checkout_env(checkout) if checkout is not None else dict(os.environ)
-    p = subprocess.run([*module_command(script, checkout), "--child", *args], capture_output=True, text=True,
-                       env=env, cwd=ROOT)
+    p = subprocess.run([*module_command(script, checkout is not None), "--child", *args], capture_output=True,
+                       text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({checkout or ROOT}, {args}):\n{p.stderr[-3000:]}")
     out = json.loads(p.stdout.strip().splitlines()[-1])

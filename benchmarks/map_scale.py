@@ -146,15 +146,17 @@ def stages(k: int) -> str:
 
     wset = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0)).renderer_for(plan)
     select = ms(lambda: wset.full.working_set(wset.cameras, prior, wset.radius_shift, wset.radius_rotation_deg))
-    full = ms(lambda: r.render_full(cam, [prior], bg))
-    split = []  # (projection, tile sort, blending and read-back) ms of each render, from its kernels' launches
-    for _ in range(15):
+    r.render_full(cam, [prior], bg)  # warm-up
+    split = []  # (render, projection, tile sort, blending and read-back) ms of each render, the stages from its
+    for _ in range(15):  # kernels' launches
         with timed_launches() as launches:
+            t0 = time.perf_counter()
             r.render_full(cam, [prior], bg)
+            wall = time.perf_counter() - t0
         t = launches.by_kernel
         proj, blend = t.get("project", 0.0), t.get("blend_images", 0.0) + t.get("readback", 0.0)
-        split.append((proj, launches.seconds - proj - blend - t.get("ext_arr_to_ndarray", 0.0), blend))
-    proj, sort, blend = (1000 * float(np.median(col)) for col in zip(*split))
+        split.append((wall, proj, launches.seconds - proj - blend - t.get("ext_arr_to_ndarray", 0.0), blend))
+    full, proj, sort, blend = (1000 * float(np.median(col)) for col in zip(*split))
     rec = r.pool.records  # the last render's projection records
     ntiles = rec.ntiles.to_numpy()[0, :r.n]
     seen = ntiles > 0

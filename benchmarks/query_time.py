@@ -6,7 +6,7 @@ Usage: python -m benchmarks.query_time --before DIR [--cases snow_sharp snow leg
 Per case (the maps, queries and priors of ``benchmarks/harness.py``: 2 % of the depth, the room 2 cm, 1 deg,
 one prior per query and seed in ``--seeds``), one query at a time (``refine_many(batch_size=1)``) after an
 untimed one: seconds per query and per stage (``harness.stage_clock``), the host's milliseconds per query
-outside Taichi's C++ launches (``harness.kernel_launches``), renders and derivative passes per query and the
+outside Taichi's C++ launches (``kernels.launch.timed_launches``), renders and derivative passes per query and the
 returned poses; then the same in the checkout ``DIR`` (the code before a change: a ``git worktree`` with
 ``hgsloc_plugin/kernels`` and ``hgsloc_plugin/adapters`` linked to its ``kernels/`` and ``adapters/``, as
 ``startup.py --before`` needs; this script runs on both sides, each importing its side's package, which the child
@@ -32,6 +32,7 @@ def child(case: str, seeds: list[int]) -> dict:
     """The timed queries in the package this process imports (the ``--child`` side), and where it lies."""
     import hgsloc_plugin as hp
     from benchmarks import harness
+    from hgsloc_plugin.kernels.launch import timed_launches
     cam, scene, qs, bg = harness.load(case)
     items, truths, scale = [], [], []  # scale: % of the depth (cm on the room) per scene unit
     for seed in seeds:
@@ -41,7 +42,7 @@ def child(case: str, seeds: list[int]) -> dict:
             scale.append(100.0 if harness.is_metric(case) else 100.0 / depth)
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
     refiner.refine(items[0][0], cam, items[0][2])  # untimed: kernel loading, workspaces
-    with harness.stage_clock(refiner) as spent, harness.kernel_launches() as launches:
+    with harness.stage_clock(refiner) as spent, timed_launches() as launches:
         t0 = time.perf_counter()
         results = refiner.refine_many(items, progress=False, batch_size=1)
         sec = time.perf_counter() - t0

@@ -31,14 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import hgsloc_plugin as hp
-from benchmarks.harness import (  # noqa: F401 (the names other benchmarks imported from here)
-    DATA,
-    load_dataset,
-    localizer_errors,
-    shaped_prior,
-    worse_count,
-    write_keeping_notes,
-)
+from benchmarks.harness import DATA, load_dataset, localizer_errors, shaped_prior, worse_count
 from hgsloc_plugin.evaluation.noise import se3_noise
 
 

@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.machine import ROOT
+from benchmarks.machine import ROOT, module_command
 
 SETTINGS = {"memo off": {"HGSLOC_TAICHI_MEMO": "0"}, "default": {}}
 
@@ -67,8 +67,7 @@ def run(setting: str, cold: bool = False) -> dict:
     with tempfile.TemporaryDirectory(prefix="hgsloc_cold_cache_") as empty:  # removed with the kernels compiled
         if cold:
             env["HGSLOC_CACHE_DIR"] = empty
-        # a setting of another checkout imports its package first on PYTHONPATH: -P keeps the working folder off
-        command = [sys.executable, *(["-P"] if "PYTHONPATH" in SETTINGS[setting] else []), "-m", "benchmarks.startup"]
+        command = module_command(__file__, other_checkout="PYTHONPATH" in SETTINGS[setting])  # --before's setting
         p = subprocess.run([*command, "--child"], capture_output=True, text=True, env=env, cwd=ROOT)
     if p.returncode != 0:
         raise RuntimeError(f"child failed ({setting}):\n{p.stderr[-3000:]}")

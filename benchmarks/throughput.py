@@ -55,7 +55,6 @@ from benchmarks.harness import (
     case_errors,
     case_priors,
     is_metric,
-    kernel_launches,
     load,
     render_ms,
     same_poses,
@@ -66,6 +65,7 @@ from benchmarks.harness import (
 from benchmarks.machine import StealClock
 from hgsloc_plugin.core.backend import default_batch_size
 from hgsloc_plugin.kernels.config import CUDA_LAYOUT  # (--layout cuda)
+from hgsloc_plugin.kernels.launch import timed_launches
 from hgsloc_plugin.refine.config import PRESETS
 from hgsloc_plugin.refine.plan import make_plan
 from hgsloc_plugin.run.batch import as_queries
@@ -114,14 +114,14 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
     with stage_clock(refiner) as spent:
         for _ in range(rounds):
             results, sec = [], 0.0
-            with kernel_launches() as launches, StealClock() as clock:
+            with timed_launches() as launches, StealClock() as clock:
                 for item in items:
                     t0 = time.perf_counter()
                     results += refiner.refine_many([item], progress=False, batch_size=1)
                     sec += time.perf_counter() - t0
                     # the unit right after each query, so that it sees the machine the query ran on (one measurement
                     # on each side of the queries moved by up to 50 % on this shared machine); not counted
-                    with kernel_launches():  # the unit's own launches count there, not in the queries'
+                    with timed_launches():  # the unit's own launches count there, not in the queries'
                         units.append(render_ms(refiner, cam, priors[0], singles=3, batch=False)[0])
             seq_sec.append(sec / n)
             seq_launches = [seq_launches[0] + launches.count, seq_launches[1] + launches.seconds]
@@ -129,7 +129,7 @@ def run(case: str, pct: float, deg: float, batch_size: int, shaped_queries: int 
                 seq_kernels[k] += v
             steal.append(clock.share)
             sequential_stages = dict(spent)  # the stage split is the sequential queries'
-            with kernel_launches() as launches, StealClock() as clock:
+            with timed_launches() as launches, StealClock() as clock:
                 together, sec_b, calls = batched(refiner, items, batch_size, gate=gate)
             spent.clear()
             spent.update(sequential_stages)

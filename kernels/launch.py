@@ -136,22 +136,21 @@ class Launcher:
         sig = tuple(_signature(a) for a in args)
         plan = self.plans.get(sig, False)
         prog = impl.get_runtime().prog
-        t0 = time.perf_counter() if _TIMERS else None
+        timer = _TIMERS[-1] if _TIMERS else None  # timed_launches' innermost
         if plan and plan[0] is prog and impl.get_runtime().target_tape is None:
             _, t_kernel, data, setters = plan
             ctx = t_kernel.make_launch_context()
             for i, (set_arg, value) in enumerate(zip(setters, args)):
                 set_arg(ctx, (i,), value)
-            if t0 is None:
-                prog.launch_kernel(data, ctx)
-            else:
-                t0 = time.perf_counter()
-                prog.launch_kernel(data, ctx)
-                _TIMERS[-1].add(self.name, time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            prog.launch_kernel(data, ctx)
+            if timer is not None:
+                timer.add(self.name, time.perf_counter() - t0)
             return None
+        t0 = time.perf_counter()
         out = self.kernel(*args)
-        if t0 is not None and _TIMERS:
-            _TIMERS[-1].add(self.name, time.perf_counter() - t0)
+        if timer is not None:
+            timer.add(self.name, time.perf_counter() - t0)
         if plan is False or (plan is not None and plan[0] is not prog):
             self.plans[sig] = self._plan(args)
         return out

@@ -37,18 +37,19 @@ def test_no_benchmark_edits_the_path_or_replaces_package_functions():
 def test_the_stage_and_launch_clocks_report_a_refinement(monkeypatch):
     monkeypatch.syspath_prepend(str(ROOT))
     import hgsloc_plugin as hp
-    from benchmarks.harness import kernel_launches, stage_clock
+    from benchmarks.harness import stage_clock
     from hgsloc_plugin.cli.demo.queries import query_poses
     from hgsloc_plugin.cli.demo.scene import make_room_scene
     from hgsloc_plugin.evaluation.noise import se3_noise
+    from hgsloc_plugin.kernels.launch import timed_launches
 
     scene, cam = make_room_scene(), hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
     gt = query_poses(1, seed=2)[0]
     img, prior = hp.render(scene, cam, gt), se3_noise(gt, 1.0, 0.03, np.random.default_rng(5))
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("search"))
     plain = refiner.refine(img, cam, prior)
-    with stage_clock(refiner) as spent, kernel_launches() as launches:
-        with kernel_launches() as inner:  # nested: the inner clock's launches are not the outer one's
+    with stage_clock(refiner) as spent, timed_launches() as launches:
+        with timed_launches() as inner:  # nested: the inner clock's launches are not the outer one's
             hp.render(scene, cam, gt)
         timed = refiner.refine(img, cam, prior)
     assert refiner.on_stage is None  # restored

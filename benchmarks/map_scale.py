@@ -4,9 +4,11 @@ Usage: python -m benchmarks.map_scale [--k 1 4 10 20] [--queries 3] [--noise 3cm
        python -m benchmarks.map_scale --stages [--k 1 20]
        python -m benchmarks.map_scale --footprints [--k 1 20] [--queries 3]
 
-The demo room densified k times (``demo.scene.densify``: every Gaussian copied k times, centres jittered, scales
-shrunk by 1/sqrt(k)); the same queries (photo-degraded 320x240 renders of the undensified room, so the map
-is as imperfect at every size) and the same coarse poses for every size. Each (size, path) runs in its own
+The demo room densified k times: ``--maps split`` (the default; ``demo.scene.densify_split``: every Gaussian split
+into k children with its moments, queries rendered from the densified map, so the truth is a minimum) or
+``--maps jitter`` (``demo.scene.densify``: copies with jittered centres, queries rendered from the undensified
+room, so the map is as imperfect at every size and every prior is kept); photo-degraded 320x240 queries and the
+same coarse poses for every size. Each (size, path) runs in its own
 process so that its peak memory (max RSS) is its own. Paths (``--paths``; default: the first two and the last):
 - ``whole map, search``: the lattice search + polish, every render projecting, sorting and blending the whole map
   (``RefineConfig(working_set=False, routes="search")``);
@@ -18,7 +20,11 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
   Gaussians of up to 2 px merged per 2 px cell (``lod.py``, ``Tuning.coarse_lod_pixels=2``; opt-in).
 - ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
   refused (``RefineConfig.routes``); ``working set + coarse LOD, gradient first``: the same with the
-  coarse LOD above.
+  coarse LOD above;
+- ``working set + LOD 1 px / 2 px, gradient first``: every render from a cut of the map's level-of-detail
+  hierarchy (``render/hierarchy.py``, ``Tuning.lod_pixels``), built in the process (its seconds and size are a
+  column) and compared per query with the exact path (``vs exact``: the median and largest change of the
+  translation error, in % of the query's depth).
 
 Before the timed queries, each process refines the first query once untimed (kernel compilation or loading
 from Taichi's offline cache, once per process; its time is printed as "warm-up").
@@ -57,16 +63,25 @@ PATHS = {
     "working set + coarse LOD, search": dict(working_set=True, routes="search", coarse_lod_pixels=2.0),
     "working set, gradient first": dict(working_set=True, routes="gradient_first"),
     "working set + coarse LOD, gradient first": dict(working_set=True, routes="gradient_first", coarse_lod_pixels=2.0),
+    "working set + LOD 1 px, gradient first": dict(working_set=True, routes="gradient_first", lod_pixels=1.0),
+    "working set + LOD 2 px, gradient first": dict(working_set=True, routes="gradient_first", lod_pixels=2.0),
 }
+#: the exact path each level-of-detail path's accuracy is compared with
+EXACT = {"working set + LOD 1 px, gradient first": "working set, gradient first",
+         "working set + LOD 2 px, gradient first": "working set, gradient first"}
+MAPS = ("split", "jitter")
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
 
-def child(k: int, path: str, queries: int, noise: str) -> dict:
+def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> dict:
+    import os
+    import tempfile
+
     import hgsloc_plugin as hp
     from benchmarks.harness import stage_clock
     from hgsloc_plugin.cli.demo.queries import degrade, query_poses
     from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
-    from hgsloc_plugin.cli.demo.scene import densify, make_room_scene
+    from hgsloc_plugin.cli.demo.scene import densify, densify_split, make_room_scene
     from hgsloc_plugin.evaluation.noise import apply_protocol
     from hgsloc_plugin.refine.plan import make_plan
 
@@ -74,13 +89,21 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
     room = make_room_scene()
     cam = QUERY_CAMERA
     gts = query_poses(queries, seed=1)
-    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(room, cam, gts))]
+    scene = densify_split(room, k) if maps == "split" else densify(room, k)
+    truth = scene if maps == "split" else room  # split maps render the room: the queries are their own images
+    imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(truth, cam, gts))]
     rng = np.random.default_rng(7)
     priors = [apply_protocol(g, noise, rng) for g in gts]
-    scene = densify(room, k)
-    del room
+    del room, truth
     cfg = hp.RefineConfig.preset("default", working_set_min=0, **PATHS[path])  # a working set, when on, at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
+    build_s = hierarchy_mb = 0.0
+    if cfg.tuning.lod_pixels is not None:
+        with tempfile.TemporaryDirectory() as tmp:  # the hierarchy built here, not read from a cache
+            os.environ["HGSLOC_LOD_CACHE_DIR"] = tmp
+            t0 = time.perf_counter()
+            hierarchy = refiner.hierarchy()
+            build_s, hierarchy_mb = time.perf_counter() - t0, hierarchy.nbytes / 1e6
     # per-render cost at the scoring size, around the first prior, on the renderer the search would use
     plan = make_plan(cfg, scene, cam, priors[0], hp.QueryPrior())
     renderer = refiner.renderer_for(plan)
@@ -106,7 +129,12 @@ def child(k: int, path: str, queries: int, noise: str) -> dict:
         nsel.append(r.working_set_selections)
         passes.append(r.derivative_passes)
     e0, e1 = np.array(e0), np.array(e1)
+    depths = [make_plan(cfg, scene, cam, p, hp.QueryPrior()).depth for p in priors]
     return {"k": k, "path": path, "arch": arch, "gaussians": scene.num_gaussians, "ms_per_render": ms,
+            "errors_t": e1[:, 0].tolist(), "errors_r": e1[:, 1].tolist(), "depths": depths,
+            "accepted": sum(r.accepted for r in results),
+            "worse": int(np.sum((e1[:, 0] > e0[:, 0]) | (e1[:, 1] > e0[:, 1]))),
+            "build_s": build_s, "hierarchy_mb": hierarchy_mb,
             "working_set": float(np.median(wset)),
             "selections": float(np.mean(nsel)), "renders": float(np.median(ren)),
             "passes": float(np.median(passes)), "warm_up_s": warm, "s_per_query": float(np.mean(sec)),
@@ -200,11 +228,27 @@ def footprints(k: int, queries: int) -> list[str]:
     return rows
 
 
+def _against_exact(r: dict, exact: dict | None) -> str:
+    """Median and largest change of the translation error against the exact path's, per query, in % of the
+    query's depth ("-" without an exact row)."""
+    if exact is None:
+        return "-"
+    d = 100 * (np.array(r["errors_t"]) - np.array(exact["errors_t"])) / np.array(r["depths"])
+    return f"{np.median(np.abs(d)):.4f} (max {d[np.argmax(np.abs(d))]:+.4f})"
+
+
+def _build(r: dict) -> str:
+    return f"{r['build_s']:.1f} / {r['hierarchy_mb']:.0f}" if r["build_s"] else "-"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--k", nargs="+", type=int, default=[1, 4, 10, 20])
     ap.add_argument("--queries", type=int, default=3)
     ap.add_argument("--noise", default="3cm,1deg")
+    ap.add_argument("--maps", choices=MAPS, default="split",
+                    help="split: densified by splitting, queries rendered from the map (the truth a minimum); "
+                         "jitter: jittered copies, queries rendered from the room (every prior kept)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--paths", nargs="+", default=list(DEFAULT_PATHS), choices=list(PATHS), metavar="PATH",
                     help=f"paths to compare, the first is the speed-up reference (any of {list(PATHS)})")
@@ -226,11 +270,13 @@ def main() -> None:
             print(stages(k), flush=True)
         return
     if a.child:
-        print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise)))
+        print(json.dumps(child(int(a.child[0]), a.child[1], a.queries, a.noise, a.maps)))
         return
-    lines = [f"Densified demo room, {a.queries} queries, noise {a.noise}; 2 threads unless the machine has more.\n",
+    lines = [f"Demo room densified ({a.maps}), {a.queries} queries, noise {a.noise}; 2 threads unless the machine has "
+             "more.\n",
              "| Gaussians | path | ms / render | working set | selections | renders / query | derivative passes | "
-             "s / query | speed-up | before t / R | after t / R | peak RSS (MB) | warm-up (s) |", "|" + "---|" * 13]
+             "s / query | speed-up | before t / R | after t / R | accepted | worse | vs exact (% of depth) | "
+             "hierarchy build (s / MB) | peak RSS (MB) | warm-up (s) |", "|" + "---|" * 17]
     print("\n".join(lines), flush=True)
     t_all = time.time()
     split = []
@@ -238,7 +284,8 @@ def main() -> None:
         rows = {}
         for path in a.paths:
             out = subprocess.run([*module_command(__file__), "--child", str(k), path, "--queries",
-                                  str(a.queries), "--noise", a.noise], capture_output=True, text=True, cwd=ROOT)
+                                  str(a.queries), "--noise", a.noise, "--maps", a.maps], capture_output=True,
+                                 text=True, cwd=ROOT)
             if out.returncode != 0:
                 print(out.stderr[-2000:], file=sys.stderr)
                 raise SystemExit(f"child k={k} {path} failed")
@@ -248,8 +295,10 @@ def main() -> None:
             line = (f"| {r['gaussians']:,} | {path} | {r['ms_per_render']:.1f} | {r['working_set']:,.0f} | "
                     f"{r['selections']:.1f} | {r['renders']:.0f} | {r['passes']:.0f} | "
                     f"{r['s_per_query']:.2f} | {sp:.2f}x | {r['before'][0]:.2f} / "
-                    f"{r['before'][1]:.2f} | {r['after'][0]:.2f} / {r['after'][1]:.3f} | {r['peak_rss_mb']:.0f} | "
-                    f"{r['warm_up_s']:.1f} |")
+                    f"{r['before'][1]:.2f} | {r['after'][0]:.2f} / {r['after'][1]:.3f} | "
+                    f"{r['accepted']} / {len(r['depths'])} | {r['worse']} | "
+                    f"{_against_exact(r, rows.get(EXACT.get(path)))} | "
+                    f"{_build(r)} | {r['peak_rss_mb']:.0f} | {r['warm_up_s']:.1f} |")
             lines.append(line)
             print(line, flush=True)
             rest = r["s_per_query"] - sum(r["stages"].values())

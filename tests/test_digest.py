@@ -20,7 +20,7 @@ from .digest_cases import CASES, load_records, machine, run_case
 
 def _first_difference(a, b, path="") -> str | None:
     if isinstance(a, dict) and isinstance(b, dict):
-        for k in sorted(set(a) | set(b) - {"digest"}):
+        for k in sorted((set(a) | set(b)) - {"digest"}):
             d = _first_difference(a.get(k), b.get(k), f"{path}.{k}")
             if d:
                 return d

@@ -30,6 +30,13 @@ def _cache_dir() -> str:
     return str(Path(os.environ.get("HGSLOC_CACHE_DIR", default)))
 
 
+def lod_cache_dir() -> Path:
+    """Where maps' level-of-detail hierarchies are cached (``render/hierarchy.py``): ``HGSLOC_LOD_CACHE_DIR``,
+    default ``~/.cache/hgsloc_plugin/hierarchy``."""
+    default = Path.home() / ".cache" / "hgsloc_plugin" / "hierarchy"
+    return Path(os.environ.get("HGSLOC_LOD_CACHE_DIR", default))
+
+
 def requested_arch(arch: str | None = None) -> str:
     """The backend asked for: ``arch``, else ``HGSLOC_ARCH``, else "auto"; lower case, checked to be one of
     "auto", "cpu", "cuda"."""

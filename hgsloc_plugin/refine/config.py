@@ -38,6 +38,10 @@ class Tuning:
             for a region of ``working_set_pixels`` of image motion.
         coarse_lod_pixels: the pyramid levels render a level of detail merging Gaussians of at most this many
             pixels (``lod.py``; approximate; with a working set only); None: the exact map.
+        lod_pixels: every render of a query draws from a cut of the map's level-of-detail hierarchy
+            (``render/hierarchy.py``, built once per map and cached) merging cells of up to this many pixels of the
+            finest size; approximate (accuracy in ``benchmarks/map_scale.md``); with a working set only; None: the
+            exact map.
         polish_iterations: the polish's derivative passes at most.
         wide_step_pixels: image motion (pixels at the final scoring size) of the wide search's lattice levels,
             run only when the search's pose is refused (priors 30-100 px of image motion off), with the automatic
@@ -71,6 +75,7 @@ class Tuning:
     working_set_min: int = 100_000
     working_set_pixels: float = 8.0
     coarse_lod_pixels: float | None = None
+    lod_pixels: float | None = None
     polish_iterations: int = 16
     wide_step_pixels: tuple[float, ...] = (16.0, 8.0)
     wide_max_side: int = 32
@@ -85,6 +90,8 @@ class Tuning:
         if self.coarse_lod_pixels is not None and not (self.coarse_lod_pixels > 0
                                                        and math.isfinite(self.coarse_lod_pixels)):
             raise ValueError(f"coarse_lod_pixels must be a positive number or None, got {self.coarse_lod_pixels!r}")
+        if self.lod_pixels is not None and not (self.lod_pixels > 0 and math.isfinite(self.lod_pixels)):
+            raise ValueError(f"lod_pixels must be a positive number or None, got {self.lod_pixels!r}")
         if not self.trust_steps > 0:
             raise ValueError(f"trust_steps must be > 0, got {self.trust_steps}")
         if self.neighbourhood not in ("lattice", "paper"):

@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from ..core.backend import lod_cache_dir
 from ..core.camera import Camera
 from ..core.costs import METRICS
 from ..core.image import check_size, load_image, undistort
@@ -22,6 +23,7 @@ from ..core.scene import GaussianScene
 from ..kernels import RasterConfig
 from ..kernels.window import RADIUS as WINDOW_RADIUS
 from ..render import RendererLike, get_renderer
+from ..render.hierarchy import CutSelection, Hierarchy, hierarchy_for
 from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan, make_plan
@@ -67,6 +69,7 @@ class Refiner:
         #: a trace hook for measurements: called as ``on_stage(stage, seconds)`` after each search level
         #: ("search WxH"), polish stage ("polish WxH") and acceptance rule ("rule"); None: nothing is called
         self.on_stage: Callable[[str, float], None] | None = None
+        self._hierarchy: Hierarchy | None = None
 
     def refine(self, image, camera: Camera, coarse_pose: Pose, *, name: str | None = None,
                prior: QueryPrior | None = None, **settings: float | None) -> RefineResult:
@@ -153,8 +156,19 @@ class Refiner:
         cam = plan.cam_final
         f = min(cam.fx, cam.fy)
         px = self.config.tuning.working_set_pixels
+        lod = self.config.tuning.lod_pixels
         return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish, plan.cam_wide],
-                          px * plan.depth / f, math.degrees(px / f))
+                          px * plan.depth / f, math.degrees(px / f),
+                          select=None if lod is None else CutSelection(self.renderer, self.hierarchy(), lod))
+
+    def hierarchy(self) -> Hierarchy:
+        """The map's level-of-detail hierarchy (``render/hierarchy.py``), built on first use or read from the cache
+        (``HGSLOC_LOD_CACHE_DIR``); needs the package's renderer (ValueError for a renderer given)."""
+        if self._hierarchy is None:
+            if self.renderer_given:
+                raise ValueError("Tuning.lod_pixels needs the package's renderer; this refiner was given its own")
+            self._hierarchy = hierarchy_for(self.renderer.arrays(), self.renderer.source_index, lod_cache_dir())
+        return self._hierarchy
 
     def try_refine(self, image, camera: Camera, coarse_pose, *, name: str | None = None,
                    prior: QueryPrior | None = None, **settings: float | None) -> RefineResult:

@@ -23,6 +23,47 @@ from . import Renderer
 DILATION_PX2 = 0.3  # RasterConfig.eps2d's default; the footprint proxy only needs its order of magnitude
 
 
+def merge_groups(arrays: dict[str, np.ndarray], members: np.ndarray, g: np.ndarray, M: int, unit: np.ndarray,
+                 eps2d: float = DILATION_PX2) -> tuple[np.ndarray, ...]:
+    """Moment-match groups of Gaussians into one Gaussian each (the rule of the module docstring).
+
+    Args:
+        arrays: ``Renderer.arrays()`` [n]; members [m]: the indices merged; g [m]: each member's group, in
+            ``range(M)``, every group with a member; unit [m]: scene units per pixel where each member is used
+            (it sets the member's footprint in pixels^2, hence its weight).
+
+    Returns:
+        float64 arrays of the M merged Gaussians: means [M, 3], cov3d [M, 6], opacities [M], sh [M, K, 3] and
+        smax [M] (the square root of the covariance's trace, >= the largest standard deviation).
+    """
+    means = arrays["means"].astype(np.float64)
+    cov = arrays["cov3d"].astype(np.float64)
+    opac = arrays["opacities"].astype(np.float64)
+    tr = cov[members][:, [0, 3, 5]].sum(axis=1)
+    a_i = tr / 3.0 / unit ** 2 + eps2d  # dilated footprint in pixels^2 (isotropic proxy)
+    o_i = opac[members]
+    w = o_i * a_i
+    W = np.bincount(g, w, M)
+
+    def wsum(x):
+        return np.bincount(g, w * x, M) / W
+
+    mu = np.stack([wsum(means[members, k]) for k in range(3)], 1)
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    cov_m = np.stack([wsum(cov[members, c] + means[members, i] * means[members, j]) - mu[:, i] * mu[:, j]
+                      for c, (i, j) in enumerate(pairs)], 1)
+    sh = arrays["sh"]
+    sh_m = np.stack([np.stack([wsum(sh[members, k, c].astype(np.float64)) for c in range(sh.shape[2])], 1)
+                     for k in range(sh.shape[1])], 1)
+    unit_m = np.bincount(g, w * unit, M) / W
+    tr_m = np.maximum(cov_m[:, [0, 3, 5]].sum(axis=1), 0.0)
+    a_m = tr_m / 3.0 / unit_m ** 2 + eps2d
+    cover = np.minimum(o_i * np.minimum(1.0, a_i / a_m[g]), 0.999)
+    o_m = 1.0 - np.exp(np.bincount(g, np.log1p(-cover), M))
+    smax_m = np.sqrt(tr_m)  # >= the largest std. dev.
+    return mu, cov_m, o_m, sh_m, smax_m
+
+
 def merge_cells(arrays: dict[str, np.ndarray], depth: np.ndarray, f: float, tau_px: float,
                 eps2d: float = DILATION_PX2) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Merge sub-``tau_px`` Gaussians per cell (see the module docstring).
@@ -36,8 +77,6 @@ def merge_cells(arrays: dict[str, np.ndarray], depth: np.ndarray, f: float, tau_
         output Gaussian, -1 for a merged one).
     """
     means = arrays["means"].astype(np.float64)
-    cov = arrays["cov3d"].astype(np.float64)
-    opac = arrays["opacities"].astype(np.float64)
     n = len(means)
     unit = depth / f  # scene units per pixel
     small = arrays["smax"].astype(np.float64) <= tau_px * unit
@@ -62,28 +101,7 @@ def merge_cells(arrays: dict[str, np.ndarray], depth: np.ndarray, f: float, tau_
     g = group[merged_member]
     _, g = np.unique(g, return_inverse=True)  # dense ids of the merged cells
     M = int(g.max()) + 1 if g.size else 0
-    tr = cov[members][:, [0, 3, 5]].sum(axis=1)
-    a_i = tr / 3.0 / unit[members] ** 2 + eps2d  # dilated footprint in pixels^2 (isotropic proxy)
-    o_i = opac[members]
-    w = o_i * a_i
-    W = np.bincount(g, w, M)
-
-    def wsum(x):
-        return np.bincount(g, w * x, M) / W
-
-    mu = np.stack([wsum(means[members, k]) for k in range(3)], 1)
-    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-    cov_m = np.stack([wsum(cov[members, c] + means[members, i] * means[members, j]) - mu[:, i] * mu[:, j]
-                      for c, (i, j) in enumerate(pairs)], 1)
-    sh = arrays["sh"]
-    sh_m = np.stack([np.stack([wsum(sh[members, k, c].astype(np.float64)) for c in range(sh.shape[2])], 1)
-                     for k in range(sh.shape[1])], 1)
-    unit_m = np.bincount(g, w * unit[members], M) / W
-    tr_m = np.maximum(cov_m[:, [0, 3, 5]].sum(axis=1), 0.0)
-    a_m = tr_m / 3.0 / unit_m ** 2 + eps2d
-    cover = np.minimum(o_i * np.minimum(1.0, a_i / a_m[g]), 0.999)
-    o_m = 1.0 - np.exp(np.bincount(g, np.log1p(-cover), M))
-    smax_m = np.sqrt(tr_m)  # >= the largest std. dev.
+    mu, cov_m, o_m, sh_m, smax_m = merge_groups(arrays, members, g, M, unit[members], eps2d)
     first = np.full(M, n, np.int64)
     np.minimum.at(first, g, members)
     kept = np.flatnonzero(keep)

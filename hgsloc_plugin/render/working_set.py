@@ -41,16 +41,21 @@ class WorkingSet:
         cameras: every camera (size, intrinsics) that will be rendered with.
         radius_shift / radius_rotation_deg: the selection region's camera-centre shift (scene units) and rotation
             (degrees) around its centre.
+        select: makes a selection, called as ``renderer.working_set`` is (the default); another one (a level of
+            detail's cut: ``hierarchy.CutSelection``) renders approximately, and a batch that does not fit one
+            region is then rendered from the exact map.
 
     Attributes:
         selections: selections made; fallback_poses: poses rendered from the whole map (their batch did not
         fit one region); largest: the largest selection's size.
     """
 
-    def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_shift: float, radius_rotation_deg: float):
+    def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_shift: float, radius_rotation_deg: float,
+                 select=None):
         if not (radius_shift > 0 and radius_rotation_deg > 0):
             raise ValueError(f"working-set radii must be > 0, got {radius_shift}, {radius_rotation_deg}")
         self.full = renderer
+        self.select = renderer.working_set if select is None else select
         self.cameras = list(cameras)
         self.radius_shift = float(radius_shift)
         self.radius_rotation_deg = float(radius_rotation_deg)
@@ -89,7 +94,7 @@ class WorkingSet:
         if not self._inside(centre, poses):
             self.fallback_poses += len(poses)
             return self.full
-        self._sub = self.full.working_set(self.cameras, centre, self.radius_shift, self.radius_rotation_deg)
+        self._sub = self.select(self.cameras, centre, self.radius_shift, self.radius_rotation_deg)
         self._centre = centre
         self.selections += 1
         self.largest = max(self.largest, self._sub.n)

@@ -221,8 +221,8 @@ class Lockstep:
         more than ``union_limit`` times the largest's (the last ``UNIONS_KEPT`` are kept: the groups of a batch
         repeat until a query selects a new working set, and each union holds a copy of its Gaussians)."""
         def make() -> BatchingRenderer | None:
-            if not self.union_limit > 1.0:
-                return None
+            if not self.union_limit > 1.0 or len({id(t.root) for t in targets}) > 1:
+                return None  # renderers of different maps (level-of-detail cuts) have no union
             union = targets[0].root.union(targets)
             return union if union.n <= self.union_limit * max(t.n for t in targets) else None
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...core.pose import rotmat_to_qvec
+from ...core.pose import qvecs_to_rotmats, rotmat_to_qvec
 from ...core.scene import SH_C0, GaussianScene
 
 HALF = 2.5
@@ -127,5 +127,34 @@ def densify(scene: GaussianScene, k: int, seed: int = 0) -> GaussianScene:
     rep = np.repeat(np.arange(n), k)
     jitter = rng.normal(size=(n * k, 3)) * (0.5 * scene.scales.max(axis=1))[rep, None]
     return GaussianScene.from_arrays((scene.means[rep] + jitter).astype(np.float32), scene.quats[rep],
+                                     (scene.scales[rep] / np.sqrt(k)).astype(np.float32), scene.opacities[rep],
+                                     sh=scene.sh[rep])
+
+
+def densify_split(scene: GaussianScene, k: int, seed: int = 0) -> GaussianScene:
+    """A map-scale stand-in that renders as ``scene`` does: every Gaussian split into ``k`` children (``k`` = 1
+    or >= 4), as 3DGS's densification splits one, with the parent's moments. Children's centres are ``k``
+    points of zero mean and identity covariance (whitened normal draws, turned at random per parent) scaled
+    by the parent's axes times ``sqrt(1 - 1/k)``; their scales are the parent's over ``sqrt(k)`` (a surface cut
+    into ``k`` pieces), their opacity and colour the parent's: the mixture's mean and covariance are the
+    parent's, and their summed footprint x opacity too."""
+    if k == 1:
+        return scene
+    if k < 4:
+        raise ValueError(f"k must be 1 or >= 4 (k points of identity covariance in 3-D), got {k}")
+    rng = np.random.default_rng(seed)
+    z = rng.normal(size=(k, 3))
+    z -= z.mean(axis=0)
+    evals, evecs = np.linalg.eigh(z.T @ z / k)
+    z = z @ evecs @ np.diag(evals ** -0.5) @ evecs.T  # mean 0, covariance I
+    n = scene.num_gaussians
+    q = rng.normal(size=(n, 4))
+    turn = qvecs_to_rotmats(q / np.linalg.norm(q, axis=1, keepdims=True))  # [n, 3, 3]
+    local = np.einsum("nij,kj->nki", turn, z)  # [n, k, 3]: the points turned per parent (covariance still I)
+    R = qvecs_to_rotmats(scene.quats.astype(np.float64))
+    offsets = np.einsum("nij,nkj->nki", R, local * scene.scales[:, None, :] * np.sqrt(1.0 - 1.0 / k))
+    rep = np.repeat(np.arange(n), k)
+    means = (scene.means[:, None, :] + offsets).reshape(-1, 3)
+    return GaussianScene.from_arrays(means.astype(np.float32), scene.quats[rep],
                                      (scene.scales[rep] / np.sqrt(k)).astype(np.float32), scene.opacities[rep],
                                      sh=scene.sh[rep])

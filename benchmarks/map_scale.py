@@ -21,7 +21,7 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
 - ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
   refused (``RefineConfig.routes``); ``working set + coarse LOD, gradient first``: the same with the
   coarse LOD above;
-- ``working set + LOD 1 px / 2 px, gradient first``: every render from a cut of the map's level-of-detail
+- ``working set + LOD 1 / 2 / 3 / 4 px, gradient first``: every render from a cut of the map's level-of-detail
   hierarchy (``render/hierarchy.py``, ``Tuning.lod_pixels``), built in the process (its seconds and size are a
   column) and compared per query with the exact path (``vs exact``: the median and largest change of the
   translation error, in % of the query's depth).
@@ -63,12 +63,11 @@ PATHS = {
     "working set + coarse LOD, search": dict(working_set=True, routes="search", coarse_lod_pixels=2.0),
     "working set, gradient first": dict(working_set=True, routes="gradient_first"),
     "working set + coarse LOD, gradient first": dict(working_set=True, routes="gradient_first", coarse_lod_pixels=2.0),
-    "working set + LOD 1 px, gradient first": dict(working_set=True, routes="gradient_first", lod_pixels=1.0),
-    "working set + LOD 2 px, gradient first": dict(working_set=True, routes="gradient_first", lod_pixels=2.0),
+    **{f"working set + LOD {px} px, gradient first": dict(working_set=True, routes="gradient_first",
+                                                          lod_pixels=float(px)) for px in (1, 2, 3, 4)},
 }
 #: the exact path each level-of-detail path's accuracy is compared with
-EXACT = {"working set + LOD 1 px, gradient first": "working set, gradient first",
-         "working set + LOD 2 px, gradient first": "working set, gradient first"}
+EXACT = {f"working set + LOD {px} px, gradient first": "working set, gradient first" for px in (1, 2, 3, 4)}
 MAPS = ("split", "jitter")
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 

@@ -146,6 +146,26 @@ def test_following_working_set_equals_whole_map_and_reselects():
         WorkingSet(full, [cam], 0.0, 1.0)
 
 
+def test_per_camera_working_set_selects_once_per_camera_and_equals_the_whole_map():
+    """WorkingSet(per_camera=True): one selection per image size, for that size alone (no larger than the
+    selection for both), reused while the poses stay in its region; images equal the whole map's bit for bit."""
+    from hgsloc_plugin.render.working_set import WorkingSet
+
+    scene = densify(make_room_scene(), 2)
+    full = get_renderer(scene)
+    big = hp.Camera.from_fov(320, 240, 65.0)
+    small = big.with_max_side(100)
+    T = query_poses(1, seed=2)[0]
+    both = WorkingSet(full, [big, small], 0.02, 1.0)
+    ws = WorkingSet(full, [big, small], 0.02, 1.0, per_camera=True)
+    for cam in (big, small, big, small):
+        for x, y in zip(ws.render_full(cam, [T]), full.render_full(cam, [T])):
+            np.testing.assert_array_equal(x, y)
+    both.render_full(big, [T])
+    assert ws.selections == 2 and both.selections == 1
+    assert ws.largest <= both.largest
+
+
 def test_working_sets_share_workspaces_and_ignore_stale_columns():
     """Working sets of one map share the map's workspaces (no allocation per query); a smaller set rendered
     after a larger one ignores the larger one's leftover per-Gaussian columns (the sort takes N as an argument:

@@ -159,7 +159,8 @@ class Refiner:
         lod = self.config.tuning.lod_pixels
         return WorkingSet(self.renderer, [plan.cam_final, plan.cam_coarse, plan.cam_polish, plan.cam_wide],
                           px * plan.depth / f, math.degrees(px / f),
-                          select=None if lod is None else CutSelection(self.renderer, self.hierarchy(), lod))
+                          select=None if lod is None else CutSelection(self.renderer, self.hierarchy(), lod),
+                          per_camera=lod is not None)
 
     def hierarchy(self) -> Hierarchy:
         """The map's level-of-detail hierarchy (``render/hierarchy.py``), built on first use or read from the cache

@@ -17,6 +17,7 @@ out. Approximate where it merges: accuracy and speed in ``benchmarks/map_scale.m
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import math
@@ -35,7 +36,7 @@ from .lod import DILATION_PX2, merge_groups
 
 logger = logging.getLogger(__name__)
 
-FORMAT = 1  # bump when the build or the file changes
+FORMAT = 2  # bump when the build or the file changes
 SIZE_PERCENTILE = 1.0  # s_0 from this percentile of the Gaussians' smax
 MAX_LEVELS = 20  # cells are packed in 21 bits per axis
 HALF_DIAGONAL = math.sqrt(3.0) / 2.0
@@ -57,6 +58,7 @@ class Hierarchy:
             of the next level holding it (-1 at the top); first [C]: its first member (a leaf index); node [C]:
             its merged Gaussian's index in ``merged`` (-1 when the cell has one member: the leaf ``first``).
         own_cell [n]: each leaf's cell at its size level (-1 when it is larger than the top level's side).
+        extent [C]: the largest ``smax`` of a cell's members and of its and its descendants' merged Gaussians.
         merged: the merged Gaussians of every cell with more than one member, as ``leaves`` [m].
         build_seconds: the build's time (0 when loaded).
     """
@@ -70,6 +72,7 @@ class Hierarchy:
     first: np.ndarray
     node: np.ndarray
     own_cell: np.ndarray
+    extent: np.ndarray
     merged: dict[str, np.ndarray]
     build_seconds: float = 0.0
 
@@ -85,8 +88,23 @@ class Hierarchy:
     @property
     def nbytes(self) -> int:
         """Bytes held beyond the leaves (cells and merged Gaussians)."""
-        cells = sum(a.nbytes for a in (self.side, self.centre, self.parent, self.first, self.node, self.own_cell))
+        cells = sum(a.nbytes for a in (self.side, self.centre, self.parent, self.first, self.node, self.own_cell,
+                                       self.extent))
         return cells + sum(a.nbytes for a in self.merged.values())
+
+    @property
+    def coarse_level(self) -> int:
+        """The level whose cells :meth:`cut` tests for visibility first (cells of about an eighth of the map)."""
+        return max(0, self.levels - 4)
+
+    @functools.cached_property
+    def ancestor(self) -> np.ndarray:
+        """[C]: each cell's cell at :attr:`coarse_level` (itself above it)."""
+        anc = np.arange(len(self.side))
+        for lv in range(self.coarse_level - 1, -1, -1):
+            a, b = self.level_start[lv], self.level_start[lv + 1]
+            anc[a:b] = anc[self.parent[a:b]]
+        return anc
 
     def small_cells(self, f: float, pose: Pose, max_shift: float, tau_px: float, near: float) -> np.ndarray:
         """[C] bool: the cells whose side projects to at most ``tau_px`` pixels (focal ``f``) at the nearest depth
@@ -119,12 +137,23 @@ class Hierarchy:
         top = self.level_start[-2]
         parent_small = np.zeros_like(small)
         parent_small[:top] = small[self.parent[:top]]
-        drawn = small & ~parent_small
-        seen = self._seen(cameras, pose, max_shift, max_rotation_deg, config)
-        cells = np.flatnonzero(drawn & seen)
+        cells = np.flatnonzero(small & ~parent_small)
         own = self.own_cell
-        at = np.maximum(own, 0)
-        kept = np.flatnonzero((own < 0) | (~small[at] & seen[at]))
+        alone = np.flatnonzero(own < 0)
+        candidates = np.flatnonzero(~small[np.maximum(own, 0)] & (own >= 0))
+        tested = np.zeros(len(small), bool)  # the visibility test only where it decides
+        tested[cells] = True
+        tested[own[candidates]] = True
+        tested = np.flatnonzero(tested)
+        view = (cameras, pose, max_shift, max_rotation_deg, config)
+        coarse = np.arange(self.level_start[self.coarse_level], len(small))  # the coarse level and above
+        near_view = np.zeros(len(small), bool)  # tested first: a cell outside its ancestor there is outside
+        near_view[coarse] = self._seen(coarse, *view)
+        tested = tested[near_view[self.ancestor[tested]]]
+        seen = np.zeros(len(small), bool)
+        seen[tested] = self._seen(tested, *view)
+        cells = cells[seen[cells]]
+        kept = np.concatenate([alone, candidates[seen[own[candidates]]]])
         as_leaf = cells[self.node[cells] < 0]
         as_node = cells[self.node[cells] >= 0]
         leaf_idx = np.concatenate([kept, self.first[as_leaf]])
@@ -135,20 +164,20 @@ class Hierarchy:
         source = np.concatenate([self.source[leaf_idx], np.full(len(node_idx), -1, np.int64)])[order]
         return out, source
 
-    def _seen(self, cameras: list[Camera], pose: Pose, max_shift: float, max_rotation_deg: float,
+    def _seen(self, cells: np.ndarray, cameras: list[Camera], pose: Pose, max_shift: float, max_rotation_deg: float,
               config: RasterConfig) -> np.ndarray:
-        """[C] bool: cells some pose of the region may see. A cell's Gaussians (members of size at most its side,
-        or their merge, whose ``smax`` is below 2.5 sides) lie within ``HALF_DIAGONAL * side`` of its centre;
-        a plane of ``cull.planes`` is failed when even the region's best pose leaves the cell's sphere outside
-        it by more than the Gaussians reach."""
+        """[len(cells)] bool: which of ``cells`` some pose of the region may see. The Gaussians a cell or its
+        descendants draw lie within ``HALF_DIAGONAL * side`` of its centre, with ``smax`` at most its
+        ``extent``; a plane of ``cull.planes`` is failed when even the region's best pose leaves the cell's sphere
+        outside it by more than they reach."""
         rows, fac = cull.planes(cameras, config)
-        q = self.centre @ pose.R.T + pose.tvec  # camera frame of the region's centre pose
-        dist = np.linalg.norm(q, axis=1)
-        turn = dist * 2.0 * math.sin(min(math.radians(max_rotation_deg), math.pi) / 2.0) + max_shift
+        q = self.centre[cells] @ pose.R.T + pose.tvec  # camera frame of the region's centre pose
+        side, extent = self.side[cells], self.extent[cells]
+        turn = np.sqrt(np.einsum("ij,ij->i", q, q)) * 2.0 * math.sin(min(math.radians(max_rotation_deg), math.pi) / 2.0)
+        turn += max_shift + HALF_DIAGONAL * side
         seen = np.ones(len(q), bool)
         for (nx, ny, nz, off), a in zip(rows, fac):
-            reach = HALF_DIAGONAL * self.side + a * 2.5 * self.side + turn
-            seen &= q @ np.array([nx, ny, nz]) + off + reach >= 0
+            seen &= q @ np.array([nx, ny, nz]) + off + turn + a * extent >= 0
         return seen
 
     def save(self, path: Path) -> None:
@@ -157,7 +186,7 @@ class Hierarchy:
         path.parent.mkdir(parents=True, exist_ok=True)
         data = {f"leaf_{k}": v for k, v in self.leaves.items()} | {f"merged_{k}": v for k, v in self.merged.items()}
         data |= {k: getattr(self, k) for k in ("source", "level_start", "side", "centre", "parent", "first", "node",
-                                               "own_cell")}
+                                               "own_cell", "extent")}
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
         try:
             with os.fdopen(fd, "wb") as fh:
@@ -179,7 +208,7 @@ class Hierarchy:
             leaves = {k: z[f"leaf_{k}"] for k in FIELDS}
             merged = {k: z[f"merged_{k}"] for k in FIELDS}
             rest = {k: z[k] for k in ("source", "level_start", "side", "centre", "parent", "first", "node",
-                                      "own_cell")}
+                                      "own_cell", "extent")}
         return cls(leaves=leaves, merged=merged, **rest)
 
 
@@ -200,7 +229,7 @@ def build_hierarchy(arrays: dict[str, np.ndarray], source: np.ndarray, eps2d: fl
         size_level = np.ceil(np.log2(np.maximum(smax, 1e-30) / s0))
     size_level = np.clip(size_level, 0, L + 1).astype(np.int64)
     own_cell = np.full(n, -1, np.int64)
-    sides, centres, parents, firsts, nodes, starts = [], [], [], [], [], [0]
+    sides, centres, parents, firsts, nodes, extents, starts = [], [], [], [], [], [], [0]
     merged_parts: dict[str, list[np.ndarray]] = {k: [] for k in FIELDS}
     m_total, prev_cells = 0, None
     for lv in range(L + 1):
@@ -226,12 +255,17 @@ def build_hierarchy(arrays: dict[str, np.ndarray], source: np.ndarray, eps2d: fl
             sm = np.sqrt(cov[:, [0, 3, 5]].sum(axis=1))
             for k, v in zip(FIELDS, (mu, cov, op, sh, sm)):
                 merged_parts[k].append(v.astype(np.float32))
+        ext = np.zeros(C)
+        np.maximum.at(ext, inv, smax[mem])
+        if M:
+            ext[multi] = np.maximum(ext[multi], sm)
         m_total += M
         own = size_level[mem] == lv
         own_cell[mem[own]] = starts[-1] + inv[own]
         if prev_cells is not None:  # the previous level's cells lie in this level's: parent = half the cell
             pk = ((prev_cells[:, 0] >> 1) << 42) | ((prev_cells[:, 1] >> 1) << 21) | (prev_cells[:, 2] >> 1)
             parents[-1] = starts[-1] + np.searchsorted(uk, pk)
+        extents.append(ext)
         sides.append(np.full(C, s))
         centres.append(origin + (cell + 0.5) * s)
         parents.append(np.full(C, -1, np.int64))
@@ -239,12 +273,18 @@ def build_hierarchy(arrays: dict[str, np.ndarray], source: np.ndarray, eps2d: fl
         nodes.append(node)
         starts.append(starts[-1] + C)
         prev_cells = cell
+    extent = np.concatenate(extents)
+    parent_all = np.concatenate(parents)
+    for lv in range(L):  # bottom-up: a cell reaches as far as its descendants' merges
+        a, b = starts[lv], starts[lv + 1]
+        np.maximum.at(extent, parent_all[a:b], extent[a:b])
     empty = {"means": (0, 3), "cov3d": (0, 6), "opacities": (0,), "sh": (0,) + arrays["sh"].shape[1:], "smax": (0,)}
     merged = {k: np.concatenate(v) if v else np.zeros(empty[k], np.float32) for k, v in merged_parts.items()}
     h = Hierarchy(leaves={k: np.ascontiguousarray(arrays[k]) for k in FIELDS},
                   source=np.asarray(source, np.int64), level_start=np.asarray(starts, np.int64),
-                  side=np.concatenate(sides), centre=np.concatenate(centres), parent=np.concatenate(parents),
-                  first=np.concatenate(firsts), node=np.concatenate(nodes), own_cell=own_cell, merged=merged,
+                  side=np.concatenate(sides), centre=np.concatenate(centres), parent=parent_all,
+                  first=np.concatenate(firsts), node=np.concatenate(nodes), own_cell=own_cell, extent=extent,
+                  merged=merged,
                   build_seconds=time.perf_counter() - t0)
     logger.info("level-of-detail hierarchy of %d Gaussians: %d levels, %d cells, %d merged, %.1f s", n, L + 1,
                 len(h.side), m_total, h.build_seconds)
@@ -283,8 +323,9 @@ def hierarchy_for(arrays: dict[str, np.ndarray], source: np.ndarray, cache_dir: 
 
 class CutSelection:
     """A :class:`~hgsloc_plugin.render.working_set.WorkingSet`'s selections from a cut: called as
-    ``Renderer.working_set`` is, it renders the cut of ``hierarchy`` for the region (at the focal length of its
-    finest camera, merging at ``tau_px`` pixels), culled to what the region's poses can see.
+    ``Renderer.working_set`` is, it renders the cut of ``hierarchy`` for the region (at the largest focal length
+    of the cameras given, merging at ``tau_px`` pixels), culled to what the region's poses can see. With
+    ``WorkingSet(per_camera=True)`` each image size gets its own cut.
 
     Args:
         renderer: the map's exact renderer (its config, kernels and pool serve the cuts); hierarchy: its

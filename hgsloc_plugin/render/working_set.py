@@ -44,6 +44,8 @@ class WorkingSet:
         select: makes a selection, called as ``renderer.working_set`` is (the default); another one (a level of
             detail's cut: ``hierarchy.CutSelection``) renders approximately, and a batch that does not fit one
             region is then rendered from the exact map.
+        per_camera: one selection per camera rendered with (for that camera alone) instead of one for all of
+            ``cameras`` (a cut per image size).
 
     Attributes:
         selections: selections made; fallback_poses: poses rendered from the whole map (their batch did not
@@ -51,7 +53,7 @@ class WorkingSet:
     """
 
     def __init__(self, renderer: RendererLike, cameras: list[Camera], radius_shift: float, radius_rotation_deg: float,
-                 select=None):
+                 select=None, per_camera: bool = False):
         if not (radius_shift > 0 and radius_rotation_deg > 0):
             raise ValueError(f"working-set radii must be > 0, got {radius_shift}, {radius_rotation_deg}")
         self.full = renderer
@@ -62,8 +64,9 @@ class WorkingSet:
         self.selections = 0
         self.fallback_poses = 0
         self.largest = 0
-        self._sub: RendererLike | None = None
-        self._centre: Pose | None = None
+        self.per_camera = per_camera
+        self._sub: RendererLike | None = None  # the last selection made
+        self._selected: dict[tuple | None, tuple[Pose, RendererLike]] = {}  # per camera (or None): centre, selection
 
     @property
     def config(self):
@@ -85,35 +88,41 @@ class WorkingSet:
         return all(np.linalg.norm(p.centre() - c0) <= self.radius_shift
                    and rotation_angle_deg(R0, p.R) <= self.radius_rotation_deg for p in poses)
 
-    def covering(self, poses: list[Pose]) -> RendererLike:
-        """A renderer whose images of ``poses`` equal the whole map's: the current selection when its region
-        holds them all, else a new selection around them (or the whole map when they do not fit one region)."""
-        if self._centre is not None and self._inside(self._centre, poses):
-            return self._sub
+    def covering(self, poses: list[Pose], camera: Camera | None = None) -> RendererLike:
+        """A renderer whose images of ``poses`` (at ``camera``) equal the whole map's: the current selection
+        (for ``camera`` when ``per_camera``) when its region holds them all, else a new selection around them (or
+        the whole map when they do not fit one region)."""
+        key = None
+        if self.per_camera and isinstance(camera, Camera):
+            key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+        centre, sub = self._selected.get(key, (None, None))
+        if centre is not None and self._inside(centre, poses):
+            return sub
         centre = mean_pose(poses)
         if not self._inside(centre, poses):
             self.fallback_poses += len(poses)
             return self.full
-        self._sub = self.select(self.cameras, centre, self.radius_shift, self.radius_rotation_deg)
-        self._centre = centre
+        cameras = self.cameras if key is None else [camera]
+        self._sub = self.select(cameras, centre, self.radius_shift, self.radius_rotation_deg)
+        self._selected[key] = (centre, self._sub)
         self.selections += 1
         self.largest = max(self.largest, self._sub.n)
         return self._sub
 
     def window_cost(self, camera: Camera, poses: list[Pose], *args, **kwargs) -> np.ndarray:
-        return self.covering(poses).window_cost(camera, poses, *args, **kwargs)
+        return self.covering(poses, camera).window_cost(camera, poses, *args, **kwargs)
 
     def cost_stats(self, camera: Camera, poses: list[Pose], *args, **kwargs) -> np.ndarray:
-        return self.covering(poses).cost_stats(camera, poses, *args, **kwargs)
+        return self.covering(poses, camera).cost_stats(camera, poses, *args, **kwargs)
 
     def pose_gradient(self, camera: Camera, poses: list[Pose], *args, **kwargs):
-        return self.covering(poses).pose_gradient(camera, poses, *args, **kwargs)
+        return self.covering(poses, camera).pose_gradient(camera, poses, *args, **kwargs)
 
     def pose_gradient_bands(self, camera: Camera, pose: Pose, *args, **kwargs):
-        return self.covering([pose]).pose_gradient_bands(camera, pose, *args, **kwargs)
+        return self.covering([pose], camera).pose_gradient_bands(camera, pose, *args, **kwargs)
 
     def render_full(self, camera: Camera, poses: list[Pose], *args, **kwargs):
-        return self.covering(poses).render_full(camera, poses, *args, **kwargs)
+        return self.covering(poses, camera).render_full(camera, poses, *args, **kwargs)
 
     def working_set(self, cameras: list[Camera], pose: Pose, max_shift: float, max_rotation_deg: float):
         return self.full.working_set(cameras, pose, max_shift, max_rotation_deg)

@@ -273,6 +273,23 @@ def test_cli_gradient_preset_and_no_polish(tiny_case, tmp_path):
     assert n["derivative_passes"] == 0 and n["polish"] == [] and n["expansions"] > 0
 
 
+@pytest.mark.slow
+def test_cli_lod_pixels_reaches_the_config_and_is_checked(tiny_case, tmp_path):
+    """--lod-pixels 2 sets Tuning.lod_pixels (the report's config says so); 0 is refused naming the flag, in JSON
+    with --json, nothing written."""
+    d = tiny_case
+    base = [sys.executable, "-m", "hgsloc_plugin.cli", "refine", "--scene", str(d / "scene.ply"), "--poses",
+            str(d / "ace.txt"), "--images", str(d / "images"), "--focal", "90", "--quiet", "--limit", "1"]
+    out = tmp_path / "lod.txt"
+    p = subprocess.run(base + ["--out", str(out), "--lod-pixels", "2px"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert json.loads(Path(str(out) + ".json").read_text())["config"]["tuning"]["lod_pixels"] == 2.0
+    bad = tmp_path / "bad.txt"
+    p = subprocess.run(base + ["--out", str(bad), "--lod-pixels", "0", "--json"], capture_output=True, text=True)
+    assert p.returncode == 2 and not bad.exists()
+    assert json.loads(p.stdout)["error"] == "--lod-pixels: must be > 0, got '0'"
+
+
 def test_pose_file_limit_must_be_a_count(tiny_case, tmp_path):
     """refine_pose_file(limit=-2) would slice off the last two queries and refine the rest: refused, nothing
     written."""

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..core.fileio import dumps_json
-from ..core.units import parse_angle, parse_length, prior_error_overrides
+from ..core.units import parse_angle, parse_length, parse_pixels, prior_error_overrides
 
 logger = logging.getLogger("hgsloc_plugin")
 EXIT_FAILED_QUERIES = 3
@@ -52,6 +52,8 @@ def cmd_refine(args) -> int:
     overrides.update(prior_error_overrides(args.prior_error, args.prior_rotation_error))
     if args.no_polish:
         overrides["routes"] = "lattice"
+    if args.lod_pixels is not None:
+        overrides["lod_pixels"] = parse_pixels(args.lod_pixels)
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")

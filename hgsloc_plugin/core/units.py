@@ -46,6 +46,11 @@ def parse_length(text: str, flag: str = "--max-shift") -> float:
     return _with_unit(text, _LENGTH_UNITS, flag)
 
 
+def parse_pixels(text: str, flag: str = "--lod-pixels") -> float:
+    """'2', '2px' -> 2.0 (pixels, > 0)."""
+    return _with_unit(text, {"": 1.0, "px": 1.0}, flag)
+
+
 def parse_angle(text: str, flag: str = "--max-rotation") -> float:
     """'5deg', '5', '0.1rad' -> degrees."""
     return _with_unit(text, _ANGLE_UNITS, flag)

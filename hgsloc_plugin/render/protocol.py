@@ -17,8 +17,10 @@ from ..kernels import RasterConfig
 class RendererLike(Protocol):
     """A scene's Gaussians, rendered and scored in batches of world-to-camera poses.
 
-    Implemented by :class:`~hgsloc_plugin.render.Renderer` and :class:`~hgsloc_plugin.render.working_set.WorkingSet`;
-    the scorer, the polish, the working set, the level of detail and ``hgsloc check`` use only these.
+    Implemented by :class:`~hgsloc_plugin.render.Renderer` and :class:`~hgsloc_plugin.render.working_set.WorkingSet`,
+    and by the PyTorch reference in the tests (``tests/reference/backend.py``, a second backend that refines through
+    ``refine``, ``refine_many`` and Ray workers); the scorer, the polish, the working set, the level of detail and
+    ``hgsloc check`` use only these.
     """
 
     config: RasterConfig

@@ -9,6 +9,7 @@ never stops the batch: it comes back as a failed :class:`~hgsloc_plugin.refine.R
 from __future__ import annotations
 
 import logging
+import pickle
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
@@ -108,12 +109,17 @@ def _results(refiner: Refiner, queries: list[Query], workers: int, ray_address: 
     """(query, result) pairs as they finish (``batch_size`` None only on Ray: each worker's default)."""
     if workers or ray_address:
         if refiner.renderer_given:
-            raise ValueError("a renderer given to the refiner does not travel to Ray workers (each builds the "
-                             "package's renderer from the scene and RasterConfig): refine in this process "
-                             "(workers=0, no ray_address)")
+            try:
+                pickle.dumps(refiner.renderer)
+            except Exception as exc:  # noqa: BLE001 - any failure to pickle means it cannot travel
+                raise ValueError("a renderer given to the refiner does not travel to Ray workers unless it pickles "
+                                 f"({type(refiner.renderer).__name__}: {exc}); the package's renderer is rebuilt "
+                                 "on each worker from the scene and RasterConfig: refine in this process "
+                                 "(workers=0, no ray_address) or give a picklable backend") from exc
         from .distributed import ray_results
 
         yield from ray_results(refiner.scene, refiner.config, refiner.raster, queries,
-                               workers=max(1, workers or 1), address=ray_address, batch_size=batch_size)
+                               workers=max(1, workers or 1), address=ray_address, batch_size=batch_size,
+                               renderer=refiner.renderer if refiner.renderer_given else None)
         return
     yield from refine_queries(refiner, queries, batch_size)

@@ -59,12 +59,12 @@ def _require_ray():
 def _worker_class(ray):
     @ray.remote
     class RefineWorker:
-        def __init__(self, scene, config, raster, arch: str, threads: int):
+        def __init__(self, scene, config, raster, arch: str, threads: int, renderer=None):
             from ..core.backend import init
             from ..refine import Refiner
 
             init(arch, cpu_threads=threads or None)
-            self.refiner = Refiner(scene, config, raster)
+            self.refiner = Refiner(scene, config, raster, renderer=renderer)
 
         def refine_chunk(self, queries, batch_size: int | None):
             from ..core.backend import default_batch_size
@@ -78,7 +78,7 @@ def _worker_class(ray):
 
 def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, address: str | None = None,
                 chunk_size: int = 2, batch_size: int | None = 1, max_retries: int = 2, threads_per_worker: int = 1,
-                _after_chunk: Callable | None = None) -> Iterator[tuple]:
+                renderer=None, _after_chunk: Callable | None = None) -> Iterator[tuple]:
     """Yield (query, RefineResult) for every query as workers finish them (any order).
 
     Args:
@@ -91,6 +91,8 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
             workers' backend (``backend.DEFAULT_BATCH_SIZE``; :func:`worker_resources` decides it).
         threads_per_worker: CPU threads each worker's Taichi uses (and the CPUs Ray reserves for it).
         max_retries: times a chunk is re-queued after its worker died.
+        renderer: a picklable ``RendererLike`` each worker refines with (another backend); None: each builds the
+            package's renderer from ``scene`` and ``raster``.
     """
     ray = _require_ray()
     from ..refine import RefineResult
@@ -107,10 +109,11 @@ def ray_results(scene, config, raster, queries: Sequence, *, workers: int = 2, a
     opts = {**resources, "max_restarts": 0}
     logger.info("%d Ray workers on %s (%s GPU each)", workers, arch, resources["num_gpus"])
     scene_ref = ray.put(scene)
+    renderer_ref = None if renderer is None else ray.put(renderer)
     by_index = {q.index: q for q in queries}
 
     def spawn():
-        return Worker.options(**opts).remote(scene_ref, config, raster, arch, threads_per_worker)
+        return Worker.options(**opts).remote(scene_ref, config, raster, arch, threads_per_worker, renderer_ref)
 
     chunk_size = max(chunk_size, batch_size or DEFAULT_BATCH_SIZE[arch])
     queue = [(list(queries[i:i + chunk_size]), 0) for i in range(0, len(queries), chunk_size)]

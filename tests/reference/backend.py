@@ -17,7 +17,7 @@ import torch
 from hgsloc_plugin.kernels import RasterConfig
 from hgsloc_plugin.kernels.layout import Stat
 
-from .render_torch import cs_gauss_newton_weight, render_reference, window_map
+from .render_torch import cs_system, render_reference, window_map
 
 
 def _cameras(camera, n: int) -> list:
@@ -130,22 +130,8 @@ class TorchRenderer:
     def _cs_system(self, camera, pose, query, background, mask_alpha):
         """cs cost, per-pixel gradient contributions [H, W, 6] and the Gauss-Newton Hessian [6, 6] at ``pose``."""
         r, a, J = self._derivatives(camera, pose, background)
-        valid = torch.from_numpy(a >= mask_alpha)
-        n = max(float(valid.sum()), 1.0)
-        rt = torch.from_numpy(r).requires_grad_(True)
-        qt = torch.from_numpy(np.asarray(query, np.float64))
-        Jt = torch.from_numpy(J)
-        cost = 1 - window_map(rt, qt)[valid].sum() / n
-        (dr,) = torch.autograd.grad(cost, rt)
-        per_pixel = torch.einsum("hwc,hwck->hwk", dr, Jt).numpy()
-        weight = cs_gauss_newton_weight(rt.detach(), qt)
-        cost_gn = 1 - window_map(rt, qt, gn_weight=weight)[valid].sum() / n
-        (dgn,) = torch.autograd.grad(cost_gn, rt, create_graph=True)
-        H = np.zeros((6, 6))
-        for i in range(6):
-            (hv,) = torch.autograd.grad((dgn * Jt[..., i]).sum(), rt, retain_graph=True)
-            H[i] = torch.einsum("hwc,hwck->k", hv, Jt).numpy()
-        return float(cost.detach()), per_pixel, 0.5 * (H + H.T)
+        cost, per_pixel, H = cs_system(r, query, J, a >= mask_alpha)
+        return cost, per_pixel, 0.5 * (H + H.T)
 
     def pose_gradient(self, camera, poses, qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
                       query_index=None):

@@ -181,3 +181,26 @@ def window_cost(rgb: np.ndarray, alpha: np.ndarray, query: np.ndarray, mask_alph
     v = window_map(r, q, luminance, sigma, radius)
     valid = torch.from_numpy(np.asarray(alpha) >= mask_alpha)
     return float(v[valid].sum()), float(valid.sum())
+
+
+def cs_system(r: np.ndarray, q: np.ndarray, J: np.ndarray, valid: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Twin of kernels/window_grad.py at one rendering r [H, W, 3] with derivative images J [H, W, 3, 6] against the
+    query q [H, W, 3] over the ``valid`` pixels [H, W]: the cs cost ``1 - mean(window_map)``, its gradient per
+    pixel [H, W, 6] (d cost / d r times J, by autograd) and the Gauss-Newton Hessian [6, 6] (J^T (d^2 cost_GN / d
+    r^2) J, cost_GN holding ``cs_gauss_newton_weight``), all float64."""
+    valid = torch.from_numpy(np.asarray(valid, bool))
+    n = max(float(valid.sum()), 1.0)
+    rt = torch.from_numpy(np.asarray(r, np.float64)).requires_grad_(True)
+    qt = torch.from_numpy(np.asarray(q, np.float64))
+    Jt = torch.from_numpy(np.asarray(J, np.float64))
+    cost = 1 - window_map(rt, qt)[valid].sum() / n
+    (dr,) = torch.autograd.grad(cost, rt)
+    per_pixel = torch.einsum("hwc,hwck->hwk", dr, Jt).numpy()
+    weight = cs_gauss_newton_weight(rt.detach(), qt)
+    cost_gn = 1 - window_map(rt, qt, gn_weight=weight)[valid].sum() / n
+    (dgn,) = torch.autograd.grad(cost_gn, rt, create_graph=True)
+    H = np.zeros((6, 6))
+    for i in range(6):
+        (hv,) = torch.autograd.grad((dgn * Jt[..., i]).sum(), rt, retain_graph=True)
+        H[i] = torch.einsum("hwc,hwck->k", hv, Jt).numpy()
+    return float(cost.detach()), per_pixel, H

@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                                           "refined pose is fused with its prior (default: unknown)")
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
     ap.add_argument("--lod_pixels", help="large maps (~500k Gaussians and more): render from the map's level-of-detail "
-                                         "hierarchy, merging cells of up to this many pixels (e.g. 2)")
+                                         "hierarchy, merging cells of up to this many pixels (1 on real maps)")
     return ap
 
 

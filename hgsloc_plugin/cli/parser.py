@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: a confident pose gets a tight region, and the refined pose is fused with it "
                         "by the count's expected error)")
     r.add_argument("--lod-pixels", help="large maps (~500k Gaussians and more): render from the map's level-of-detail "
-                   "hierarchy, merging cells of up to this many pixels (e.g. 2; built once, cached; "
+                   "hierarchy, merging cells of up to this many pixels (1 on real maps; built once, cached; "
                    "benchmarks/map_scale.md)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=count_arg, help="refine only the first N queries")

@@ -43,9 +43,12 @@ HALF_DIAGONAL = math.sqrt(3.0) / 2.0
 FIELDS = ("means", "cov3d", "opacities", "sh", "smax")
 #: a merged Gaussian's covariance gains (COVER * side)^2 on its diagonal: moment matching alone leaves each cell's
 #: merge compact (a standard deviation of 0.29 side for members spread over the cell), so neighbouring merges of
-#: a surface leave gaps the members covered (2026-12-06, room split 20 times, 320x240, cuts at 2 / 4 px: PSNR
-#: against the exact map 26-28 / 17-19 dB without, 29-30 / 24-26 dB with 0.4; 0.3 and 0.5 lower)
-COVER = 0.4
+#: a surface leave gaps the members covered. Chosen 2026-12-06 on the room split 20 times and the real snow_sharp
+#: photos (the change to refined poses against the exact map at 2 px, % of the depth: 0 -> 0.026 / 0.012, 0.2 ->
+#: 0.011 / 0.008, 0.3 -> 0.008 / 0.005, 0.4 -> 0.005 / 0.018), checked on lego and the snow.ply photos, not used
+#: to choose it (0.3 against 0.4: 0.032 / 0.010 against 0.134 / 0.017 at 2 px; 0.006 / 0.009 against 0.009 /
+#: 0.010 at 1 px): benchmarks/map_scale.md
+COVER = 0.3
 
 
 @dataclass(frozen=True)

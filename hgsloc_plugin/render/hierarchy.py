@@ -11,8 +11,9 @@ A cut (:meth:`Hierarchy.cut`) for a focal length ``f`` (pixels) and a region of 
 camera-centre shift): a cell is *small* when its side projects to at most ``tau_px`` pixels at the nearest depth
 any pose of the region gets to its bounding sphere, and then so is every cell inside it. The cut draws the node of
 each small cell whose parent is not small, and each Gaussian whose size-level cell is not small as itself: every
-Gaussian of the map is drawn exactly once, merged or as it is. Cells wholly behind the region's cameras are left
-out. Approximate where it merges: accuracy and speed in ``benchmarks/map_scale.md``.
+Gaussian of the map is drawn exactly once, merged or as it is. Cells no pose of the region can see are left out
+(a conservative test with ``kernels/cull.py``'s planes). Approximate where it merges: accuracy and speed in
+``benchmarks/map_scale.md`` (1 px kept refined poses within 0.01 % of the depth on every real map measured).
 """
 
 from __future__ import annotations
@@ -86,6 +87,7 @@ class Hierarchy:
 
     @property
     def levels(self) -> int:
+        """Levels of cells (L + 1)."""
         return len(self.level_start) - 1
 
     @property

@@ -166,10 +166,11 @@ def test_hierarchy_cache_round_trip_and_bad_file(tmp_path, caplog):
     assert isinstance(Hierarchy.load(files[0]), Hierarchy)
 
 
-def test_refine_with_lod_matches_the_exact_map_and_batches():
+def test_refine_with_lod_matches_the_exact_map_and_batches(tmp_path, monkeypatch):
     """On the room split 4 times (queries its own images), refinement through 2 px cuts ends within 0.01 % of
     the depth of the exact map's poses (median), never worse than the prior; refine_many (lockstep, no unions
     across cuts) returns the same poses as refine; a bad threshold and a given renderer are refused."""
+    monkeypatch.setenv("HGSLOC_LOD_CACHE_DIR", str(tmp_path))  # the hierarchy cached here, not in the home folder
     scene = densify_split(make_room_scene(), 4)
     gts = query_poses(2, seed=1)
     imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(scene, CAM, gts))]
@@ -188,6 +189,7 @@ def test_refine_with_lod_matches_the_exact_map_and_batches():
     many = lod.refine_many(list(zip(imgs, [CAM] * 2, priors)), progress=False, batch_size=2)
     for m, img, p in zip(many, imgs, priors):
         np.testing.assert_array_equal(m.pose.matrix34(), lod.refine(img, CAM, p).pose.matrix34())
+    assert len(list(tmp_path.glob("*.npz"))) == 1  # built once, for both refiners' queries
     with pytest.raises(ValueError, match="lod_pixels"):
         hp.Tuning(lod_pixels=0.0)
     given = hp.HGSLocPlugin(scene, exact_cfg.replace(lod_pixels=2.0), renderer=get_renderer(scene))

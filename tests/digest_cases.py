@@ -27,7 +27,7 @@ RECORD = Path(__file__).resolve().parent / "data" / "digests.json"
 MACHINE_KEY = "_machine"  # a record of one machine only (before 2026-12-03): the entry naming it
 #: CPU flags that change the arithmetic the kernels and numpy's BLAS are compiled or dispatched to
 #: (avx512_vp2intersect: an EPYC generation whose kernels round otherwise under the same model name; across CPUs
-#: the differences grow into other polish iterations and verdicts, so no tolerance holds a record for all: 2026-12-06)
+#: the differences grow into other polish iterations and render counts: ``portable_difference`` checks what holds)
 VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_bf16",
                 "avx512_vp2intersect", "neon", "asimd", "sve")
 
@@ -185,6 +185,46 @@ def run_case(name: str) -> dict:
     blob = json.dumps(rec, sort_keys=True, default=repr).encode()
     rec["digest"] = hashlib.sha256(blob).hexdigest()[:16]
     return rec
+
+
+#: on a machine without a record of its own: each refinement's verdict must equal the records' and its pose lie
+#: within these of theirs (rotation in degrees; translation x max(1, |t|) in scene units). Between the three
+#: recorded CPUs (2026-12-06) the poses differ by up to 0.013 deg and 1.1e-3 units (lego, |t| ~ 4), the verdicts
+#: never (one route differs: the gradient route's pose accepted on one CPU, the search's on another, 1.5e-5 apart)
+PORTABLE_DEG, PORTABLE_T = 0.05, 1e-3
+
+
+def _poses(rec: dict) -> list[tuple[str, bool, str | None, np.ndarray, np.ndarray]]:
+    """(name, accepted, rejected, qvec, tvec) of each refinement a case record holds (its results, or for the
+    pose-file case the written file's lines and its report's verdicts)."""
+    if rec["results"]:
+        return [(r["name"], r["accepted"], r["rejected"], np.array(r["qvec"]), np.array(r["tvec"]))
+                for r in rec["results"]]
+    text, report = rec["extra"]
+    out = []
+    for line in text.splitlines():
+        t = line.split()
+        q = report["queries"][t[0]]
+        out.append((t[0], q["accepted"], q.get("rejected"), np.array(t[1:5], float), np.array(t[5:8], float)))
+    return out
+
+
+def portable_difference(got: dict, record: dict) -> str | None:
+    """Where ``got`` and another machine's ``record`` of one case differ beyond float rounding (None: they agree):
+    a verdict (accepted, rejected), or a pose beyond ``PORTABLE_DEG`` / ``PORTABLE_T``."""
+    from hgsloc_plugin.core.pose import qvec_to_rotmat, rotation_angle_deg
+
+    a, b = _poses(got), _poses(record)
+    if [x[0] for x in a] != [y[0] for y in b]:
+        return f"queries {[x[0] for x in a]}, recorded {[y[0] for y in b]}"
+    for (name, acc, rej, q, t), (_, acc_r, rej_r, q_r, t_r) in zip(a, b):
+        if (acc, rej) != (acc_r, rej_r):
+            return f"{name}: accepted {acc} ({rej}), recorded {acc_r} ({rej_r})"
+        angle = rotation_angle_deg(qvec_to_rotmat(q), qvec_to_rotmat(q_r))
+        shift = float(np.linalg.norm(t - t_r))
+        if angle > PORTABLE_DEG or shift > PORTABLE_T * max(1.0, float(np.linalg.norm(t_r))):
+            return f"{name}: pose {shift:.2e} units / {angle:.2e} deg from the record's"
+    return None
 
 
 def load_records() -> dict[str, dict]:

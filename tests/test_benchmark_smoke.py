@@ -72,3 +72,20 @@ def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
         assert (tmp_path / "record.json").stat().st_size > 0
     else:
         assert "|" in text or text.lstrip().startswith("{"), text[-2000:]  # a table row, or a child's JSON record
+
+
+def test_map_scale_level_of_detail_rows(tmp_path, monkeypatch):
+    """map_scale's query rows, exact and through the hierarchy, on the smallest split map (its children run as
+    processes: long)."""
+    if not ALL:
+        pytest.skip("5-110 s: run with HGSLOC_BENCH_SMOKE=1")
+    monkeypatch.syspath_prepend(str(ROOT))
+    monkeypatch.setenv("HGSLOC_LOD_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(sys, "argv", ["benchmarks/map_scale.py", "--k", "1", "--queries", "1", "--paths",
+                                      "working set, gradient first", "working set + LOD 1 px, gradient first"])
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        runpy.run_module("benchmarks.map_scale", run_name="__main__")
+    rows = [line for line in out.getvalue().splitlines() if line.startswith("| 48,761 | working set")]
+    assert len(rows) == 4, out.getvalue()[-2000:]  # two table rows, two stage rows
+    assert "1 / 1" in rows[1] and "(max" in rows[1]  # accepted, and compared with the exact path

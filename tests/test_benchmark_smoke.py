@@ -34,14 +34,15 @@ SMOKE = {
     "throughput": (["--cases", "room", "--rounds", "1"], None, "long"),
     "tile_lists": (["--cases", "room", "--repeats", "1"], None, "fast"),
     "tile_sort": (["--child", "room", "--repeats", "1"], None, "fast"),
-    "accuracy": (["--queries", "1", "--paper-queries", "1", "--donut-queries", "0"], None, "long"),
+    "accuracy": (["--queries", "1", "--paper-queries", "1", "--donut-queries", "0", "--out", "{tmp}/page.md"], None,
+                 "long"),
     "backends": (["--out", "{tmp}/record.json"], None, "long"),
     "basin": (["--cases", "room", "--queries", "1"], None, "long"),
     "curvature": (["--cases", "room"], None, "long"),
     "distortion": (["--seeds", "0"], "snow", "long"),
     "map_floor": (["--datasets", "lego", "--queries", "1", "--draws", "1"], "lego", "long"),
     "real_photos": (["--datasets", "lego", "--heuristics", "cs", "--seeds", "1"], "lego", "long"),
-    "refine": (["--cases", "room", "--queries", "1"], None, "long"),
+    "refine": (["--cases", "room", "--queries", "1", "--out", "{tmp}/page.md"], None, "long"),
     "render": (["--repeats", "1"], None, "long"),
     "trust": (["--scenes", "room", "--queries", "1", "--draws", "1"], None, "long"),
 }
@@ -61,6 +62,7 @@ def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
         shared_path(data)
     monkeypatch.syspath_prepend(str(ROOT))
     monkeypatch.setattr(sys, "argv", [f"benchmarks/{name}.py", *(a.format(tmp=tmp_path) for a in args)])
+    pages = {p: p.read_bytes() for p in (ROOT / "benchmarks").glob("*.md")}
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         try:
@@ -68,6 +70,7 @@ def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
         except SystemExit as exc:
             assert exc.code in (0, None), f"{name} exited with {exc.code}"
     text = out.getvalue()
+    assert {p: p.read_bytes() for p in (ROOT / "benchmarks").glob("*.md")} == pages, "a smoke run wrote a page"
     if name == "backends":  # its record goes to --out
         assert (tmp_path / "record.json").stat().st_size > 0
     else:

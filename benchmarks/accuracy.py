@@ -99,7 +99,9 @@ def main() -> None:
                     f"{np.median([r.derivative_passes for r in res]):.0f} | "
                     f"{np.median([r.seconds for r in res]):.2f} |")
                 print(lines[-1], flush=True)
-    text = ("# Accuracy benchmark\n\n"
+    from benchmarks.harness import regenerate_line
+
+    text = ("# Accuracy benchmark\n\n" + regenerate_line(__file__) + "\n\n"
             f"Queries: {a.queries} on the room, {a.donut_queries} on the donut (paper emulation: "
             f"{a.paper_queries}), photo-degraded renderings at "
             f"320x240, scoring at 200 px (polish at 320 px); backend {hp.current_arch()}; medians over queries; "

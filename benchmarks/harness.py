@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import shlex
 import sys
 import time
 from collections import defaultdict
@@ -82,6 +83,13 @@ def shaped_prior(gt: hp.Pose, err: hp.Pose, depth: float) -> hp.Pose:
 def worse_count(e0: np.ndarray, e1: np.ndarray) -> int:
     """How many returned poses (errors ``e1`` [n, 2]) are further from the truth than their priors (``e0``)."""
     return int(np.sum((e1[:, 0] > e0[:, 0] + 1e-9) | (e1[:, 1] > e0[:, 1] + 1e-9)))
+
+
+def regenerate_line(module_file: str) -> str:
+    """The line a page starts with under its title: ``Regenerate: `python -m benchmarks.<name> <this run's
+    arguments>```, for the benchmark whose file is ``module_file``."""
+    args = " ".join(shlex.quote(a) for a in sys.argv[1:])
+    return f"Regenerate: `python -m benchmarks.{Path(module_file).stem}{' ' + args if args else ''}`"
 
 
 def write_keeping_notes(path: Path, lines: list[str], section: str = "## Notes") -> None:

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 import hgsloc_plugin as hp
-from benchmarks.harness import load_dataset, write_keeping_notes
+from benchmarks.harness import load_dataset, regenerate_line, write_keeping_notes
 from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.render import Renderer
 from tests.reference.render_torch import window_map
@@ -198,7 +198,7 @@ def main() -> None:
     args = ap.parse_args()
     hp.init()
     t0 = time.perf_counter()
-    lines = ["# Map floor (`benchmarks/map_floor.py`)", "",
+    lines = ["# Map floor (`benchmarks/map_floor.py`)", "", regenerate_line(__file__), "",
              f"One run on this machine ({hp.current_arch()}), {args.draws} priors per query and level."]
     for name in args.datasets:
         loaded = load_dataset(name)

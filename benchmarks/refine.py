@@ -25,7 +25,15 @@ from pathlib import Path
 import numpy as np
 
 import hgsloc_plugin as hp
-from benchmarks.harness import DATA, ROOT, load_dataset, localizer_errors, shaped_prior, write_keeping_notes
+from benchmarks.harness import (
+    DATA,
+    ROOT,
+    load_dataset,
+    localizer_errors,
+    regenerate_line,
+    shaped_prior,
+    write_keeping_notes,
+)
 from hgsloc_plugin.cli.demo.queries import degrade, query_poses
 from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
 from hgsloc_plugin.cli.demo.scene import make_room_scene
@@ -208,7 +216,7 @@ def sweep_rows(scene, cam, gts, imgs, cost, lines) -> None:
 
 
 def write(out, lines, t_start) -> None:
-    text = ("# Refinement modes\n\n" + __doc__.split("\n\n", 2)[2].strip() +
+    text = ("# Refinement modes\n\n" + regenerate_line(__file__) + "\n\n" + __doc__.split("\n\n", 2)[2].strip() +
             f"\n\nBackend {hp.current_arch()}; total time {time.time() - t_start:.0f} s.\n" + "\n".join(lines))
     write_keeping_notes(Path(out), text.splitlines(), section="## ")  # its discussion sections kept
     print(f"wrote {out}")

@@ -97,7 +97,9 @@ def main() -> None:
             r = run(setting, args.cold)
             rows.append((setting, k + 1, r))
             print(f"{setting} run {k + 1}: {r}", file=sys.stderr)
-    lines = ["# Start-up (`benchmarks/startup.py`)", "",
+    from benchmarks.harness import regenerate_line
+
+    lines = ["# Start-up (`benchmarks/startup.py`)", "", regenerate_line(__file__), "",
              f"A fresh process each row (offline cache {'empty' if args.cold else 'warm'}): seconds to import the "
              "package, start Taichi, render the",
              "first image (demo room, 320x240) and refine one query twice; loading = first refine - the same again.",

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 import hgsloc_plugin as hp
-from benchmarks.harness import DATA, load_dataset, localizer_errors, shaped_prior, write_keeping_notes
+from benchmarks.harness import DATA, load_dataset, localizer_errors, regenerate_line, shaped_prior, write_keeping_notes
 from hgsloc_plugin.adapters.confidence import inlier_trust
 from hgsloc_plugin.cli.demo.queries import degrade, query_poses
 from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
@@ -242,7 +242,7 @@ def main() -> None:
     makers = {"snow_sharp": snow_sharp_case, "snow": snow_case, "lego": lego_case, "room": room_case,
               "donut": donut_case}
     t_start = time.time()
-    lines = ["# Trust benchmark (`benchmarks/trust.py`)",
+    lines = ["# Trust benchmark (`benchmarks/trust.py`)", "", regenerate_line(__file__),
              f"\nPreset {args.preset}; backend {hp.current_arch()}; errors in 7-Scenes-equivalent cm / deg; "
              f"worse = > {WORSE_CM:g} cm or > {WORSE_DEG:g} deg further from the truth than the prior."]
     for s in args.scenes:

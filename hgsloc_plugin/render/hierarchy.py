@@ -20,10 +20,9 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import io
 import logging
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import Camera
+from ..core.fileio import atomic_write_bytes
 from ..core.pose import Pose
 from ..kernels import RasterConfig, cull
 from .lod import DILATION_PX2, merge_groups
@@ -42,6 +42,8 @@ SIZE_PERCENTILE = 1.0  # s_0 from this percentile of the Gaussians' smax
 MAX_LEVELS = 20  # cells are packed in 21 bits per axis
 HALF_DIAGONAL = math.sqrt(3.0) / 2.0
 FIELDS = ("means", "cov3d", "opacities", "sh", "smax")
+#: the hierarchy's arrays besides the leaves and the merged Gaussians (as saved)
+ARRAYS = ("source", "level_start", "side", "centre", "parent", "first", "node", "own_cell", "extent")
 #: a merged Gaussian's covariance gains (COVER * side)^2 on its diagonal: moment matching alone leaves each cell's
 #: merge compact (a standard deviation of 0.29 side for members spread over the cell), so neighbouring merges of
 #: a surface leave gaps the members covered. Chosen 2026-12-06 on the room split 20 times and the real snow_sharp
@@ -186,23 +188,12 @@ class Hierarchy:
         return seen
 
     def save(self, path: Path) -> None:
-        """Write to ``path`` (npz) atomically, readable by others as the umask allows."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        """Write to ``path`` (npz) atomically, readable by others as the umask allows (``atomic_write_bytes``)."""
         data = {f"leaf_{k}": v for k, v in self.leaves.items()} | {f"merged_{k}": v for k, v in self.merged.items()}
-        data |= {k: getattr(self, k) for k in ("source", "level_start", "side", "centre", "parent", "first", "node",
-                                               "own_cell", "extent")}
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez(fh, format=np.int64(FORMAT), **data)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o666 & ~umask)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        data |= {k: getattr(self, k) for k in ARRAYS}
+        buffer = io.BytesIO()
+        np.savez(buffer, format=np.int64(FORMAT), **data)
+        atomic_write_bytes(Path(path), buffer.getvalue())
 
     @classmethod
     def load(cls, path: Path) -> Hierarchy:
@@ -212,8 +203,7 @@ class Hierarchy:
                 raise ValueError(f"{path}: hierarchy format {int(z['format'])}, expected {FORMAT}")
             leaves = {k: z[f"leaf_{k}"] for k in FIELDS}
             merged = {k: z[f"merged_{k}"] for k in FIELDS}
-            rest = {k: z[k] for k in ("source", "level_start", "side", "centre", "parent", "first", "node",
-                                      "own_cell", "extent")}
+            rest = {k: z[k] for k in ARRAYS}
         return cls(leaves=leaves, merged=merged, **rest)
 
 
@@ -341,10 +331,8 @@ class CutSelection:
         if not (tau_px > 0 and math.isfinite(tau_px)):
             raise ValueError(f"tau_px must be a positive number, got {tau_px!r}")
         self.renderer, self.hierarchy, self.tau_px = renderer, hierarchy, float(tau_px)
-        self.drawn: list[int] = []  # Gaussians of each cut, before the cull
 
     def __call__(self, cameras: list[Camera], pose: Pose, max_shift: float, max_rotation_deg: float):
         arrays, source = self.hierarchy.cut(cameras, pose, max_shift, max_rotation_deg, self.tau_px,
                                             self.renderer.config)
-        self.drawn.append(len(source))
         return self.renderer.derived(arrays, source).working_set(cameras, pose, max_shift, max_rotation_deg)

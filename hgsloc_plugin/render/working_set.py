@@ -66,7 +66,7 @@ class WorkingSet:
         self.largest = 0
         self.per_camera = per_camera
         self._sub: RendererLike | None = None  # the last selection made
-        self._selected: dict[tuple | None, tuple[Pose, RendererLike]] = {}  # per camera (or None): centre, selection
+        self._selected: dict[Camera | None, tuple[Pose, RendererLike]] = {}  # per camera (or None): centre, selection
 
     @property
     def config(self):
@@ -92,9 +92,7 @@ class WorkingSet:
         """A renderer whose images of ``poses`` (at ``camera``) equal the whole map's: the current selection
         (for ``camera`` when ``per_camera``) when its region holds them all, else a new selection around them (or
         the whole map when they do not fit one region)."""
-        key = None
-        if self.per_camera and isinstance(camera, Camera):
-            key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+        key = camera if self.per_camera and isinstance(camera, Camera) else None
         centre, sub = self._selected.get(key, (None, None))
         if centre is not None and self._inside(centre, poses):
             return sub

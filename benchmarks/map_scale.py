@@ -77,7 +77,7 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
     import tempfile
 
     import hgsloc_plugin as hp
-    from benchmarks.harness import stage_clock
+    from benchmarks.harness import case_errors, case_priors, load_dataset, stage_clock, worse_count
     from hgsloc_plugin.cli.demo.queries import degrade, query_poses
     from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
     from hgsloc_plugin.cli.demo.scene import densify, densify_split, make_room_scene
@@ -86,14 +86,10 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
 
     arch = hp.init()
     if maps == "snow_sharp":  # real photos on the good snow map split k times; priors 2 % of the depth / 1 deg
-        from benchmarks.harness import case_priors, load_dataset
-
         cam, base, qs, _ = load_dataset(maps)
         qs = qs[:queries]
         scene = densify_split(base, k)
-        gts, imgs = [g for _, g, _, _ in qs], [im for _, _, im, _ in qs]
         priors = case_priors(maps, qs, 2.0, 1.0)
-        unit = [100.0 / d for _, _, _, d in qs]  # errors in % of each photo's median depth
     else:
         room = make_room_scene()
         cam = QUERY_CAMERA
@@ -103,8 +99,10 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
         imgs = [degrade(im, np.random.default_rng(1000 + i)) for i, im in enumerate(hp.render(truth, cam, gts))]
         rng = np.random.default_rng(7)
         priors = [apply_protocol(g, noise, rng) for g in gts]
-        unit = [100.0] * len(gts)  # cm
+        qs = [(f"room{i}", g, im, 0.0) for i, (g, im) in enumerate(zip(gts, imgs))]  # metric: no depth needed
         del room, truth
+    gts, imgs = [g for _, g, _, _ in qs], [im for _, _, im, _ in qs]
+    case = maps if maps == "snow_sharp" else "room"  # errors in % of the depth, or cm (harness.case_errors)
     cfg = hp.RefineConfig.preset("default", working_set_min=0, **PATHS[path])  # a working set, when on, at every size
     refiner = hp.HGSLocPlugin(scene, cfg)
     build_s = hierarchy_mb = 0.0
@@ -127,24 +125,22 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
     t0 = time.perf_counter()
     refiner.refine(imgs[0], cam, priors[0])  # warm-up: compiles (or loads) every kernel the routes use, once
     warm = time.perf_counter() - t0
-    e0, e1, ren, sec, wset, nsel, passes = [], [], [], [], [], [], []
+    ren, sec, wset, nsel, passes = [], [], [], [], []
     with stage_clock(refiner) as spent:
         results = [refiner.refine(img, cam, prior) for img, prior in zip(imgs, priors)]
-    for r, gt, prior, u in zip(results, gts, priors, unit):
-        e0.append(np.multiply(prior.errors_to(gt), (u, 1.0)))
-        e1.append(np.multiply(r.pose.errors_to(gt), (u, 1.0)))
+    for r in results:
         ren.append(r.renders)
         sec.append(r.seconds)
         wset.append(r.working_set)
         nsel.append(r.working_set_selections)
         passes.append(r.derivative_passes)
-    e0, e1 = np.array(e0), np.array(e1)
+    e0, e1 = case_errors(case, qs, priors), case_errors(case, qs, [r.pose for r in results])
     depths = [make_plan(cfg, scene, cam, p, hp.QueryPrior()).depth for p in priors]
     return {"k": k, "path": path, "arch": arch, "gaussians": scene.num_gaussians, "ms_per_render": ms,
             "errors_t": [r.pose.errors_to(g)[0] for r, g in zip(results, gts)], "errors_r": e1[:, 1].tolist(),
             "depths": depths,
             "accepted": sum(r.accepted for r in results),
-            "worse": int(np.sum((e1[:, 0] > e0[:, 0]) | (e1[:, 1] > e0[:, 1]))),
+            "worse": worse_count(e0, e1),
             "build_s": build_s, "hierarchy_mb": hierarchy_mb,
             "working_set": float(np.median(wset)),
             "selections": float(np.mean(nsel)), "renders": float(np.median(ren)),

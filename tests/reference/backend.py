@@ -17,7 +17,7 @@ import torch
 from hgsloc_plugin.kernels import RasterConfig
 from hgsloc_plugin.kernels.layout import Stat
 
-from .render_torch import cs_system, render_reference, window_map
+from .render_torch import cs_system, render_reference, window_cost
 
 
 def _cameras(camera, n: int) -> list:
@@ -102,9 +102,7 @@ class TorchRenderer:
         out = np.zeros((len(poses), 2))
         for b, (c, p) in enumerate(zip(_cameras(camera, len(poses)), poses)):
             r, a = self._image(c, p, background)
-            v = window_map(torch.from_numpy(r), torch.from_numpy(qstats[qi[b]]), luminance)
-            valid = torch.from_numpy(a >= mask_alpha)
-            out[b] = float(v[valid].sum()), float(valid.sum())
+            out[b] = window_cost(r, a, qstats[qi[b]], mask_alpha, luminance)
         return out
 
     # ---- pose derivatives ----

@@ -23,7 +23,6 @@ import hgsloc_plugin as hp
 from benchmarks.harness import ROOT
 from hgsloc_plugin.cli.demo.queries import degrade, query_poses
 from hgsloc_plugin.cli.demo.scene import make_room_scene
-from hgsloc_plugin.core.fileio import atomic_write_bytes
 from hgsloc_plugin.evaluation.noise import apply_protocol
 
 HEURISTICS = ("sad", "psnr", "ssim", "affine")  # no polish: its derivatives are those of cs
@@ -99,7 +98,7 @@ def main() -> None:
                     f"{np.median([r.derivative_passes for r in res]):.0f} | "
                     f"{np.median([r.seconds for r in res]):.2f} |")
                 print(lines[-1], flush=True)
-    from benchmarks.harness import regenerate_line
+    from benchmarks.harness import regenerate_line, write_keeping_notes
 
     text = ("# Accuracy benchmark\n\n" + regenerate_line(__file__) + "\n\n"
             f"Queries: {a.queries} on the room, {a.donut_queries} on the donut (paper emulation: "
@@ -108,7 +107,7 @@ def main() -> None:
             "translation in "
             "scene units x 100 (cm for the room), rotation in degrees. "
             f"Total time {time.time() - t_start:.0f} s.\n\n" + "\n".join(lines) + "\n")
-    atomic_write_bytes(Path(a.out), text.encode())
+    write_keeping_notes(Path(a.out), text.rstrip("\n").split("\n"))
     print(f"wrote {a.out}")
 
 

@@ -92,9 +92,9 @@ def regenerate_line(module_file: str) -> str:
     return f"Regenerate: `python -m benchmarks.{Path(module_file).stem}{' ' + args if args else ''}`"
 
 
-def write_keeping_notes(path: Path, lines: list[str], section: str = "## Notes") -> None:
+def write_keeping_notes(path: Path, lines: list[str], section: str = "## Findings") -> None:
     """Write ``lines`` as a Markdown file at ``path`` (atomically), keeping what the file already has from its
-    first line starting with ``section`` (default: its ``## Notes``; ``"## "``: every level-2 section, for a
+    first line starting with ``section`` (default: its ``## Findings``; ``"## "``: every level-2 section, for a
     benchmark whose own lines hold none): a benchmark regenerates its figures, not the discussion beside them."""
     from hgsloc_plugin.core.fileio import atomic_write_bytes
 

@@ -319,11 +319,10 @@ def main() -> None:
     lines.append(f"\nTotal {time.time() - t_all:.0f} s; Taichi backend: {rows[a.paths[0]]['arch']}.")
     print(lines[-1])
     if a.out:
-        from benchmarks.harness import write_keeping_notes
+        from benchmarks.harness import regenerate_line, write_keeping_notes
 
-        head = ["# Map scale (`benchmarks/map_scale.py`)", "", f"Regenerate: `python -m benchmarks.map_scale --out "
-                f"{a.out}` (`HGSLOC_ARCH=cuda` for the CUDA table).", ""]
-        write_keeping_notes(Path(a.out), head + lines, section="## ")  # its dated sections kept
+        head = ["# Map scale (`benchmarks/map_scale.py`)", "", regenerate_line(__file__), ""]
+        write_keeping_notes(Path(a.out), head + lines, section="## ")  # its other runs' sections kept
 
 
 if __name__ == "__main__":

@@ -31,7 +31,15 @@ from pathlib import Path
 import numpy as np
 
 import hgsloc_plugin as hp
-from benchmarks.harness import DATA, load_dataset, localizer_errors, shaped_prior, worse_count
+from benchmarks.harness import (
+    DATA,
+    load_dataset,
+    localizer_errors,
+    regenerate_line,
+    shaped_prior,
+    worse_count,
+    write_keeping_notes,
+)
 from hgsloc_plugin.evaluation.noise import se3_noise
 
 
@@ -110,14 +118,12 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="also write the tables as Markdown here")
     args = ap.parse_args()
     hp.init()
-    lines = ["# Real-photo benchmark (`benchmarks/real_photos.py`)",
+    lines = ["# Real-photo benchmark (`benchmarks/real_photos.py`)", "", regenerate_line(__file__),
              f"\nDefault config, scoring side {hp.RefineConfig().score_max_side} px; seeds {args.seeds}."]
     for ds in args.datasets:
         lines += run(ds, args.heuristics, args.seeds)
     if args.out:
-        from hgsloc_plugin.core.fileio import atomic_write_bytes
-
-        atomic_write_bytes(Path(args.out), ("\n".join(lines) + "\n").encode())
+        write_keeping_notes(Path(args.out), lines)
 
 
 if __name__ == "__main__":

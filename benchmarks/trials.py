@@ -44,10 +44,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from benchmarks.machine import ROOT, module_command
+
+if TYPE_CHECKING:
+    from hgsloc_plugin.evaluation.floor import MapFloor
 
 DATA = ROOT.parent / "shared" / "data"
 LOCALIZERS = ("ace", "glace", "marepo", "dfnet", "hloc")
@@ -63,6 +67,8 @@ SEED = 2026
 #: ``(L * SYNTHETIC_VIEWS / 5 + i) % SYNTHETIC_VIEWS``: every view serves several localizers' errors, and rendering
 #: the views with the reference renderer (~2 s each on one core) does not dominate the run
 SYNTHETIC_VIEWS = 200
+#: ``--map-floor measured``: the views of each scene the map's floor is measured on (the fixed scenes: all of theirs)
+FLOOR_VIEWS = 12
 
 #: the page's description of the views and columns, under its title and regenerate line
 PAGE_INTRO = """\
@@ -261,9 +267,6 @@ class Views:
             self.scene, self.cam, self.fixed, self.bg = _dataset(name)
         self._cache: dict[int, tuple] = {}
 
-    def __len__(self) -> int | None:
-        return None if self.fixed is None else len(self.fixed)
-
     def view(self, k: int):
         if self.fixed is not None:
             return self.fixed[k]
@@ -334,8 +337,24 @@ def available(scene: str) -> Path | None:
     return need if need is not None and not need.exists() else None
 
 
-def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool = True) -> None:
-    """Refine each trial, appending one JSON line per trial to ``out_path``."""
+def measured_floors(views: Views, refiner) -> MapFloor:
+    """The map's floor (``evaluation.floor``) of a scene, measured on its first ``FLOOR_VIEWS`` views (a fixed
+    scene's every view) refined from their true poses; a trial at one of them takes the floor without it
+    (``MapFloor.without``): no trial's own view tells its floor."""
+    from hgsloc_plugin.evaluation.floor import map_floor
+
+    n = len(views.fixed) if views.fixed is not None else FLOOR_VIEWS
+    measured = []
+    for k in range(n):
+        gt, img, _ = views.view(k)
+        measured.append((img, views.cam, gt, str(k)))
+    return map_floor(refiner, measured)
+
+
+def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool = True,
+               map_floor: str = "default") -> None:
+    """Refine each trial, appending one JSON line per trial to ``out_path``; ``map_floor`` "measured": each scene's
+    trials declare the map's floor measured on its other views (:func:`measured_floors`), "default": none."""
     import hgsloc_plugin as hp
     from adapters.confidence import HLOC_FEW_INLIERS, hloc_trust, inlier_trust
 
@@ -346,6 +365,8 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
         torch.set_num_threads(int(os.environ["HGSLOC_CPU_THREADS"]))
     views: dict[str, Views] = {}
     refiners: dict[str, hp.HGSLocPlugin] = {}
+    floors: dict[str, MapFloor] = {}
+    floor_refiners: dict[tuple, hp.HGSLocPlugin] = {}  # (scene, floor) -> its refiner
     errors: dict[str, tuple] = {}
     config = hp.RefineConfig.preset(preset)
     t_start = time.time()
@@ -355,6 +376,8 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                 views[tr.scene] = Views(tr.scene)
                 refiners[tr.scene] = hp.HGSLocPlugin(views[tr.scene].scene,
                                                      config.replace(background=views[tr.scene].bg))
+                if map_floor == "measured":
+                    floors[tr.scene] = measured_floors(views[tr.scene], refiners[tr.scene])
             if tr.localizer not in errors:
                 errors[tr.localizer] = localizer_errors(tr.localizer)
             v = views[tr.scene]
@@ -368,7 +391,16 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                 settings = inlier_trust(inliers).as_dict()
             elif tr.localizer == "hloc":
                 settings = hloc_trust(HLOC_FEW_INLIERS).as_dict()
-            r = refiners[tr.scene].refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
+            refiner, floor = refiners[tr.scene], None
+            if map_floor == "measured":
+                floor = floors[tr.scene].without(str(tr.view))
+                key = (tr.scene, floor.depth, floor.deg)
+                if key not in floor_refiners:
+                    base = refiners[tr.scene]
+                    floor_refiners[key] = hp.HGSLocPlugin(base.scene, base.config.replace(**floor.tuning()),
+                                                          renderer=base.renderer)
+                refiner = floor_refiners[key]
+            r = refiner.refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
             cm = 100.0 * REFERENCE_DEPTH / depth  # cm-eq per scene unit
             t0, r0 = prior.errors_to(gt)
             t1, r1 = r.pose.errors_to(gt)
@@ -381,6 +413,7 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                    "renders": int(r.renders), "seconds": float(r.seconds),
                    "cost_initial": float(r.cost_initial), "cost_final": float(r.cost_final),
                    "gradient_rejected": r.gradient_rejected,
+                   "map_floor": None if floor is None else [floor.depth, floor.deg],
                    "assessment": None if r.assessment is None else r.assessment.to_dict()}
             f.write(json.dumps(rec) + "\n")
             f.flush()
@@ -394,6 +427,9 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--localizers", nargs="+", default=list(LOCALIZERS), choices=LOCALIZERS)
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--map-floor", default="default", choices=("default", "measured"),
+                    help="measured: each trial declares its map's floor measured on the scene's other views "
+                         "(hgsloc check --measure-floor's figure); default: the package's default floor")
     ap.add_argument("--jobs", type=int, default=2, help="processes, each on its share of the cores")
     ap.add_argument("--raw", default=None, help="keep one JSON line per trial here (default: a temporary file)")
     ap.add_argument("--out", default=None, help="write the table as Markdown here")
@@ -422,7 +458,8 @@ def main() -> None:
     raw = Path(args.raw) if args.raw else Path(os.environ.get("TMPDIR", "/tmp")) / f"trials-{os.getpid()}.jsonl"
     if args.shard:
         k, n = (int(x) for x in args.shard.split("/"))
-        run_trials([t for t in trials if t.view % n == k], args.preset, raw, progress=k == 0)  # a view: one process
+        run_trials([t for t in trials if t.view % n == k], args.preset, raw, progress=k == 0,  # a view: one process
+                   map_floor=args.map_floor)
         return
     t0 = time.time()
     parts = [raw.with_suffix(f".part{k}") for k in range(args.jobs)]
@@ -431,7 +468,7 @@ def main() -> None:
     env = dict(os.environ)  # each process its share of the cores, unless HGSLOC_CPU_THREADS says otherwise
     env.setdefault("HGSLOC_CPU_THREADS", str(max(1, (os.cpu_count() or 1) // args.jobs)))
     cmd = [*module_command(__file__), "--per-cell", str(args.per_cell), "--preset", args.preset, "--scenes", *scenes,
-           "--localizers", *args.localizers]
+           "--localizers", *args.localizers, "--map-floor", args.map_floor]
     procs = [subprocess.Popen(cmd + ["--raw", str(p), "--shard", f"{k}/{args.jobs}"], env=env, cwd=ROOT)
              for k, p in enumerate(parts)]
     codes = [p.wait() for p in procs]

@@ -81,13 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
     ap.add_argument("--lod_pixels", help="large maps (~500k Gaussians and more): render from the map's level-of-detail "
                                          "hierarchy, merging cells of up to this many pixels (1 on real maps)")
+    ap.add_argument("--map_floor", help="the map's own error at a view, e.g. 0.6%%,0.2deg, as 'hgsloc check "
+                                        "--measure-floor' measures it on views with known poses (default 0.3%%,0.1deg)")
     return ap
 
 
 def cli(argv=None) -> int:
     """The shell entry point; user errors end in one line on stderr and exit code 2; failed queries are named on
     stderr, exit code 3 (every other result is written); an interrupt exits 130 (rerun to resume)."""
-    from .core.units import parse_pixels, prior_error_overrides
+    from .core.units import parse_map_floor, parse_pixels, prior_error_overrides
     from .refine import RefineConfig
     from .run.pipeline import read_report
 
@@ -98,6 +100,8 @@ def cli(argv=None) -> int:
                                           ("--prior_error", "--prior_rotation_error"))
         if a.lod_pixels is not None:
             overrides["lod_pixels"] = parse_pixels(a.lod_pixels, "--lod_pixels")
+        if a.map_floor is not None:
+            overrides.update(parse_map_floor(a.map_floor, "--map_floor"))
         main(a.scene, a.queries, a.results, a.image_dir, a.output, RefineConfig.preset(a.config, **overrides),
              a.limit, allow_distortion=a.allow_distortion, batch_size=a.batch_size,
              inlier_region=not a.no_inlier_region, restart=a.restart,

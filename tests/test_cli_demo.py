@@ -163,11 +163,14 @@ def test_hloc_step(tiny_case, tmp_path):
             "--results", str(res), "--image_dir", str(d / "images"), "--config", "fast", "--limit", "2"]
     shell_out = tmp_path / "shell_refined.txt"
     run = subprocess.run(base + ["--output", str(shell_out), "--prior_error", "5cm", "--prior_rotation_error", "2deg",
-                                 "--batch_size", "2", "--lod_pixels", "2"], capture_output=True, text=True)
+                                 "--batch_size", "2", "--lod_pixels", "2", "--map_floor", "0.5%,0.2deg"],
+                         capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     rep = json.loads(shell_out.with_name(shell_out.name + ".json").read_text())
     assert rep["config"]["prior_error"] == pytest.approx(0.05) and rep["config"]["prior_error_deg"] == 2.0
     assert rep["config"]["tuning"]["lod_pixels"] == 2.0
+    assert rep["config"]["tuning"]["map_floor_depth"] == pytest.approx(0.005)
+    assert rep["config"]["tuning"]["map_floor_deg"] == pytest.approx(0.2)
     entries = list(rep["queries"].values())
     assert len(entries) == 2 and rep["totals"]["accepted"] >= 1
     assert all(e["fused"] == e["accepted"] and e["prior_error"] == pytest.approx(0.05) for e in entries)
@@ -180,6 +183,9 @@ def test_hloc_step(tiny_case, tmp_path):
     bad = subprocess.run(base + ["--output", str(tmp_path / "bad.txt"), "--lod_pixels", "-1"], capture_output=True,
                          text=True)
     assert bad.returncode == 2 and "--lod_pixels" in bad.stderr and not (tmp_path / "bad.txt").exists()
+    bad = subprocess.run(base + ["--output", str(tmp_path / "bad.txt"), "--map_floor", "0.5"], capture_output=True,
+                         text=True)
+    assert bad.returncode == 2 and "--map_floor" in bad.stderr and not (tmp_path / "bad.txt").exists()
     # a damaged line in hloc's results is an error naming it (not a line skipped as if the file were Marepo's)
     damaged = tmp_path / "damaged.txt"
     damaged.write_text(res.read_text() + "garbage line here\n")

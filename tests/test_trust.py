@@ -226,6 +226,10 @@ def test_pose_uncertainty_is_the_cluster_robust_sandwich_plus_the_floor():
     # bands that agree (a gradient of zero in each: the residuals explain nothing of the pose) leave the floor
     cov0, _, _ = pose_uncertainty(H, np.zeros((12, 6)), depth)
     np.testing.assert_allclose(cov0, floor)
+    # a measured floor (Tuning.map_floor_depth / map_floor_deg) replaces the default one
+    cov_m, st_m, _ = pose_uncertainty(H, np.zeros((12, 6)), depth, 0.01, 0.5)
+    np.testing.assert_allclose(cov_m, np.diag([math.radians(0.5) ** 2 / 3] * 3 + [(0.01 * depth) ** 2 / 3] * 3))
+    assert st_m == pytest.approx(0.01 * depth)
     # four times the curvature: a quarter of the sandwich
     cov4, _, _ = pose_uncertainty(4.0 * H, G, depth)
     np.testing.assert_allclose(cov4 - floor, (cov - floor) / 16.0, rtol=1e-10, atol=1e-18)

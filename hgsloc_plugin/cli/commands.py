@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..core.fileio import dumps_json
-from ..core.units import parse_angle, parse_length, parse_pixels, prior_error_overrides
+from ..core.units import parse_angle, parse_length, parse_map_floor, parse_pixels, prior_error_overrides
 
 logger = logging.getLogger("hgsloc_plugin")
 EXIT_FAILED_QUERIES = 3
@@ -54,6 +54,8 @@ def cmd_refine(args) -> int:
         overrides["routes"] = "lattice"
     if args.lod_pixels is not None:
         overrides["lod_pixels"] = parse_pixels(args.lod_pixels)
+    if args.map_floor is not None:
+        overrides.update(parse_map_floor(args.map_floor))
     config = RefineConfig.preset(args.config, **overrides)
     if Path(args.out).resolve() == Path(args.poses).resolve():
         raise ValueError(f"{args.out}: refusing to overwrite the input pose file")
@@ -130,11 +132,37 @@ def _check(args, sample: int, figures=None, inputs=None, intrinsics=None):
                        figures=figures)
 
 
+def _measure_floor(args, names: list[str], inputs, intrinsics):
+    """The map's floor (``evaluation.floor.MapFloor``) over the queries ``names``, each refined from its own pose
+    with the default settings."""
+    from ..adapters.names import resolve_image
+    from ..core.image import load_image
+    from ..evaluation.floor import map_floor
+    from ..refine import RefineConfig
+    from ..run.plugin import HGSLocPlugin
+
+    scene, pf = inputs
+    background = (1.0, 1.0, 1.0) if _white(args) else (0.0, 0.0, 0.0)
+    refiner = HGSLocPlugin(scene, RefineConfig(background=background))
+    views = []
+    for n in names:
+        img = load_image(resolve_image(n, Path(args.images)), name=n, background=background)
+        views.append((img, intrinsics(n, img.shape[1], img.shape[0]), pf[n], n))
+    return map_floor(refiner, views)
+
+
 def cmd_check(args) -> int:
     _require_folder(args.images)
-    rep = _check(args, args.sample, Path(args.figures) if args.figures else None)
+    inputs, intrinsics = _inputs(args), _intrinsics(args)
+    rep = _check(args, args.sample, Path(args.figures) if args.figures else None, inputs=inputs,
+                 intrinsics=intrinsics)
+    floor = _measure_floor(args, rep.names, inputs, intrinsics) if args.measure_floor and rep.agrees else None
     if args.json:
-        print(dumps_json(rep.to_dict()))
+        out = rep.to_dict()
+        if floor is not None:
+            out["map_floor"] = {"depth": floor.depth, "deg": floor.deg, "views": floor.n, "flag": floor.flag(),
+                                "offsets": {n: list(map(float, o)) for n, o in zip(floor.names, floor.offsets)}}
+        print(dumps_json(out))
     else:
         for k, n in enumerate(rep.names):
             alt = min((h for h in rep.costs if h != "as given"), key=lambda h: rep.costs[h][k])
@@ -145,6 +173,13 @@ def cmd_check(args) -> int:
         print(f"median depth {rep.median_depth:.4g} scene units at the sampled poses: 'hgsloc evaluate --scale "
               f"{rep.scale_for_2m:.3g}' gives errors in cm as if it were 2 m (a 7-Scenes room), comparable across "
               "maps (its cm-eq)")
+        if floor is not None:
+            worst = floor.offsets.max(axis=0)
+            print(f"map floor over {floor.n} views (their poses taken as exact): {100 * floor.depth:.3g} % of the "
+                  f"depth / {floor.deg:.3g} deg (root mean square; largest {100 * worst[0]:.3g} % / {worst[1]:.3g} "
+                  f"deg): refine with --map-floor {floor.flag()}")
+        elif args.measure_floor:
+            print("map floor not measured: the map and the poses do not agree")
     return 0 if rep.ok else 1
 
 

@@ -66,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--lod-pixels", help="large maps (~500k Gaussians and more): render from the map's level-of-detail "
                    "hierarchy, merging cells of up to this many pixels (1 on real maps; built once, cached; "
                    "benchmarks/map_scale.md)")
+    r.add_argument("--map-floor", help="the map's own error at a view, e.g. 0.6%%,0.2deg (camera centre in %% of the "
+                   "median depth, rotation), as 'hgsloc check --measure-floor' measures it on views with known poses: "
+                   "in every refined pose's sigma and in its fusion with the prior (default 0.3%%,0.1deg)")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=count_arg, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")
@@ -92,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--white-background", action="store_true")
     c.add_argument("--sample", type=positive_count_arg, default=8, help="queries to render (evenly spaced)")
     c.add_argument("--figures", help="write query | rendering images here")
+    c.add_argument("--measure-floor", action="store_true",
+                   help="when they agree, also refine each sampled query from its own pose and report how far the "
+                        "map's minima lie from the poses (the map's floor, for 'hgsloc refine --map-floor'): give "
+                        "views whose poses are exact, e.g. the map's training views, and --sample 20 or more")
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_check)
 

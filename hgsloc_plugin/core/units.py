@@ -67,3 +67,13 @@ def prior_error_overrides(error: str | None, rotation_error: str | None,
     if rotation_error is not None:
         out["prior_error_deg"] = parse_angle(rotation_error, flags[1])
     return out
+
+
+def parse_map_floor(text: str, flag: str = "--map-floor") -> dict:
+    """'0.6%,0.2deg' (the camera-centre floor in % of the query's median depth, the rotation floor in degrees, as
+    ``hgsloc check --measure-floor`` prints it) -> the ``Tuning`` fields ``map_floor_depth`` (a fraction) and
+    ``map_floor_deg``; ValueError naming ``flag`` otherwise."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*%\s*,\s*([^,]+)", text)
+    if not m:
+        raise ValueError(f"{flag}: expected 'P%,Rdeg' (e.g. '0.6%,0.2deg'), got {text!r}")
+    return {"map_floor_depth": float(m.group(1)) / 100.0, "map_floor_deg": parse_angle(m.group(2), flag)}

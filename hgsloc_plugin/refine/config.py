@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 from ..core.costs import METRICS as _COSTS
 from ..core.costs import SEARCH_METRICS as METRICS
+from .uncertainty import FLOOR_DEG, FLOOR_DEPTH
 
 #: which routes a query runs (``RefineConfig.routes``)
 ROUTES = ("gradient_first", "search", "gradient", "lattice")
@@ -54,6 +55,11 @@ class Tuning:
             end in one minimum found the map's own minimum near the prior (its floor), not a far prior's plateau
             (``benchmarks/basin.md``); 0: the wide search after every refused search.
         mask_alpha: ignore pixels whose rendered alpha is below this.
+        map_floor_depth / map_floor_deg: the map's own error at a view, as 3-D standard deviations (camera centre
+            as a fraction of the query's median depth, rotation in degrees), added to every polished pose's
+            covariance: what no image statistic sees (``refine/uncertainty.py``). Measure it on views with known
+            poses (``hgsloc check --measure-floor``, :func:`~hgsloc_plugin.evaluation.floor.map_floor`); the
+            default is a good real map's (0.3 % / 0.1 deg).
         paper_step_q / paper_step_t: the "paper" neighbourhood's raw-component steps.
     """
 
@@ -81,6 +87,8 @@ class Tuning:
     wide_max_side: int = 32
     same_minimum_pixels: float = 1.0
     mask_alpha: float = 0.0
+    map_floor_depth: float = FLOOR_DEPTH
+    map_floor_deg: float = FLOOR_DEG
     paper_step_q: float = 1e-4
     paper_step_t: float = 1e-4
 
@@ -113,6 +121,9 @@ class Tuning:
         object.__setattr__(self, "wide_step_pixels", tuple(float(x) for x in self.wide_step_pixels))
         if not self.wide_max_side >= 16:
             raise ValueError(f"wide_max_side must be >= 16, got {self.wide_max_side!r}")
+        for name in ("map_floor_depth", "map_floor_deg"):
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} must be a number >= 0, got {getattr(self, name)!r}")
         if not (self.same_minimum_pixels >= 0 and math.isfinite(self.same_minimum_pixels)):
             raise ValueError(f"same_minimum_pixels must be a number >= 0, got {self.same_minimum_pixels!r}")
 

@@ -29,7 +29,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..core.pose import Pose, rotation_angle_deg
-from .uncertainty import BANDS, fuse_with_prior, pose_uncertainty, prior_distance, sigmas, within_tolerance
+from .uncertainty import (
+    BANDS,
+    FLOOR_DEG,
+    FLOOR_DEPTH,
+    fuse_with_prior,
+    pose_uncertainty,
+    prior_distance,
+    sigmas,
+    within_tolerance,
+)
 
 if TYPE_CHECKING:
     from ..core.camera import Camera
@@ -186,10 +195,11 @@ class Verdict:
 
 
 def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str, lattice: bool, structural: bool,
-          pivot: bool, name: str | None = None) -> Verdict:
+          pivot: bool, floor: tuple[float, float] = (FLOOR_DEPTH, FLOOR_DEG), name: str | None = None) -> Verdict:
     """Apply the acceptance rule (``rule`` "trust", on the lattice; else "cost": any lower cost) to ``cand``, then
     fuse an accepted polished pose with a prior of known error. ``scorer`` scores at ``cam``, the judging size;
-    ``structural``: the cost's level is comparable across images (the alignment test applies).
+    ``structural``: the cost's level is comparable across images (the alignment test applies); ``floor``: the map's
+    floor (fraction of the depth, degrees) in a polished pose's covariance.
 
     Everything the rule may need is scored in one batch: the coarse pose and the candidate (their costs are set on
     ``cand``), the one-pixel moves (6 of the 12 for a polished candidate, ``model_moves``; the other 6 in a second
@@ -201,7 +211,9 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     moves = pixel_moves(cand.pose, plan, cam, pivot) if trust else []
     model = model_moves(cand, moves, cam)
     first = moves if model is None else [moves[i] for i in model[0]]
-    uncertainty = pose_uncertainty(*scorer.band_gradients(cand.pose, BANDS), plan.depth) if cand.polish else None
+    uncertainty = None
+    if cand.polish:
+        uncertainty = pose_uncertainty(*scorer.band_gradients(cand.pose, BANDS), plan.depth, *floor)
     fuses = uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None)
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):

@@ -19,7 +19,8 @@ from ..core.pose import Pose
 PRIOR_SPREAD = 1.3
 #: horizontal bands of image rows whose gradients the pose's covariance is made of (``pose_uncertainty``)
 BANDS = 12
-#: the map's floor in the covariance: camera centre as a fraction of the median depth, and degrees (3-D sigmas)
+#: the map's floor in the covariance when none is measured (``Tuning.map_floor_depth`` / ``map_floor_deg``): camera
+#: centre as a fraction of the median depth, and degrees (3-D sigmas)
 FLOOR_DEPTH = 0.003
 FLOOR_DEG = 0.1
 
@@ -83,19 +84,21 @@ def within_tolerance(sigma_t: float, sigma_r_deg: float, depth: float) -> float:
     return p_t * p_r
 
 
-def pose_uncertainty(jtj: np.ndarray, band_grads: np.ndarray, depth: float) -> tuple[np.ndarray, float, float]:
+def pose_uncertainty(jtj: np.ndarray, band_grads: np.ndarray, depth: float, floor_depth: float = FLOOR_DEPTH,
+                     floor_deg: float = FLOOR_DEG) -> tuple[np.ndarray, float, float]:
     """Covariance and standard deviations of a polished pose, cluster-robust over bands of image rows.
 
     The pose minimises a sum of per-band costs; how far each band's gradient pulls at the minimum is what the
     residuals the map cannot explain (its own errors, lighting, occluders, a wrong minimum) do to the pose, in
     whatever units the image has: the sandwich ``H^-1 (K / (K - 6) sum_c g_c g_c^T) H^-1`` over the ``K`` bands
-    (``BANDS``), plus the map's floor (``FLOOR_DEPTH`` of the depth and ``FLOOR_DEG``, isotropic) that no band
-    sees.
+    (``BANDS``), plus the map's floor (``floor_depth`` of the depth and ``floor_deg``, isotropic 3-D sigmas) that no
+    band sees.
 
     Args:
         jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
             pose; band_grads: [K, 6] the cost's gradient per band at the same pose (``Scorer.band_gradients``);
-            depth: the query's median depth (scene units).
+            depth: the query's median depth (scene units); floor_depth / floor_deg: the map's floor
+            (``Tuning.map_floor_depth`` / ``map_floor_deg``).
 
     Returns:
         (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
@@ -114,7 +117,7 @@ def pose_uncertainty(jtj: np.ndarray, band_grads: np.ndarray, depth: float) -> t
         return np.full((6, 6), math.inf), math.inf, math.inf
     meat = (G.T @ G) * (len(G) / (len(G) - 6.0))  # the pose absorbs 6 of the bands' degrees of freedom
     cov = Hi @ meat @ Hi
-    floor = [math.radians(FLOOR_DEG) ** 2 / 3.0] * 3 + [(FLOOR_DEPTH * depth) ** 2 / 3.0] * 3
+    floor = [math.radians(floor_deg) ** 2 / 3.0] * 3 + [(floor_depth * depth) ** 2 / 3.0] * 3
     cov = 0.5 * (cov + cov.T) + np.diag(floor)
     return (cov, *sigmas(cov))
 

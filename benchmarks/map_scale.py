@@ -21,6 +21,9 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
 - ``working set, gradient first``: Levenberg-Marquardt from the prior first, the search only when its pose is
   refused (``RefineConfig.routes``); ``working set + coarse LOD, gradient first``: the same with the
   coarse LOD above;
+- ``working set, gradient first, priors nudged 1e-5 of the depth``: the exact path from priors moved that far
+  (``NUDGED``): its ``vs exact`` is the refinement's own sensitivity to its start, against which a level of
+  detail's change reads;
 - ``working set + LOD 1 / 2 / 3 / 4 px, gradient first``: every render from a cut of the map's level-of-detail
   hierarchy (``render/hierarchy.py``, ``Tuning.lod_pixels``), built in the process (its seconds and size are a
   column) and compared per query with the exact path (``vs exact``: the median and largest change of the
@@ -66,8 +69,14 @@ PATHS = {
     **{f"working set + LOD {px} px, gradient first": dict(working_set=True, routes="gradient_first",
                                                           lod_pixels=float(px)) for px in (1, 2, 3, 4)},
 }
-#: the exact path each level-of-detail path's accuracy is compared with
-EXACT = {f"working set + LOD {px} px, gradient first": "working set, gradient first" for px in (1, 2, 3, 4)}
+#: the exact path with every prior's centre moved by this fraction of its depth (a seeded direction per query): its
+#: ``vs exact`` is how much the refined pose moves for a change of the start far below anything a map could show,
+#: the scale the level of detail's change is read against
+NUDGED = {"working set, gradient first, priors nudged 1e-5 of the depth": 1e-5}
+PATHS |= {path: PATHS["working set, gradient first"] for path in NUDGED}
+#: the exact path each level-of-detail (or nudged) path's accuracy is compared with
+EXACT = {path: "working set, gradient first"
+         for path in [f"working set + LOD {px} px, gradient first" for px in (1, 2, 3, 4)] + list(NUDGED)}
 MAPS = ("split", "jitter", "snow_sharp")
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
@@ -104,6 +113,11 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
     gts, imgs = [g for _, g, _, _ in qs], [im for _, _, im, _ in qs]
     case = maps if maps == "snow_sharp" else "room"  # errors in % of the depth, or cm (harness.case_errors)
     cfg = hp.RefineConfig.preset("default", working_set_min=0, **PATHS[path])  # a working set, when on, at every size
+    if path in NUDGED:
+        way = np.random.default_rng(11).normal(size=(len(priors), 3))
+        way /= np.linalg.norm(way, axis=1, keepdims=True)
+        priors = [hp.Pose.from_centre(p.R, p.centre() + NUDGED[path] * make_plan(cfg, scene, cam, p, hp.QueryPrior())
+                                      .depth * w) for p, w in zip(priors, way)]
     refiner = hp.HGSLocPlugin(scene, cfg)
     build_s = hierarchy_mb = 0.0
     if cfg.tuning.lod_pixels is not None:

@@ -17,7 +17,7 @@ from hgsloc_plugin.cli.demo.scene import densify_split, make_room_scene
 from hgsloc_plugin.evaluation.noise import apply_protocol
 from hgsloc_plugin.refine.plan import make_plan
 from hgsloc_plugin.render import get_renderer
-from hgsloc_plugin.render.hierarchy import Hierarchy, build_hierarchy, hierarchy_for
+from hgsloc_plugin.render.hierarchy import PREFILTER, Hierarchy, build_hierarchy, hierarchy_for
 from hgsloc_plugin.render.lod import DILATION_PX2, psnr
 
 CAM = QUERY_CAMERA  # 320x240, f 251 px
@@ -106,6 +106,25 @@ def test_cut_without_merges_renders_the_exact_map_bit_for_bit():
     poses = [T] + [apply_protocol(T, "2cm,0.5deg", np.random.default_rng(s)) for s in range(3)]
     for a, b in zip(cut.render_full(CAM, poses), r.render_full(CAM, poses)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_prefilter_levels_leave_the_cut_unchanged():
+    """Testing cells for visibility first at coarser levels (``PREFILTER``) only skips tests: on the split room,
+    for two views, three image sizes and two thresholds, the cut equals the one that tests every drawn cell on its
+    own, Gaussian for Gaussian; and the region's far side is left out, so the tests decide something."""
+    scene = densify_split(make_room_scene(), 4)
+    r = get_renderer(scene)
+    h = build_hierarchy(r.arrays(), r.source_index)
+    for T in query_poses(2, seed=2):
+        for cam in (CAM, CAM.with_max_side(100)):
+            for tau in (1.0, 2.0):
+                want, want_src = h.cut([cam], T, 0.05, 1.0, tau, r.config, prefilter=())
+                for prefilter in ((4,), PREFILTER, (2, 5, 8)):
+                    got, got_src = h.cut([cam], T, 0.05, 1.0, tau, r.config, prefilter=prefilter)
+                    np.testing.assert_array_equal(got_src, want_src)
+                    for k in ("means", "cov3d", "opacities", "smax"):
+                        np.testing.assert_array_equal(got[k], want[k])
+                assert 0 < len(want_src) < scene.num_gaussians // 2
 
 
 def test_split_room_cut_fidelity():

@@ -354,7 +354,9 @@ def measured_floors(views: Views, refiner) -> MapFloor:
 def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool = True,
                map_floor: str = "default") -> None:
     """Refine each trial, appending one JSON line per trial to ``out_path``; ``map_floor`` "measured": each scene's
-    trials declare the map's floor measured on its other views (:func:`measured_floors`), "default": none."""
+    trials declare the map's floor measured on its other views (:func:`measured_floors`), "measured-all": on all
+    its views, the trial's own among them (as training views cover a query's part of the map: a bound, not a
+    held-out figure), "default": none."""
     import hgsloc_plugin as hp
     from adapters.confidence import HLOC_FEW_INLIERS, hloc_trust, inlier_trust
 
@@ -376,7 +378,7 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                 views[tr.scene] = Views(tr.scene)
                 refiners[tr.scene] = hp.HGSLocPlugin(views[tr.scene].scene,
                                                      config.replace(background=views[tr.scene].bg))
-                if map_floor == "measured":
+                if map_floor != "default":
                     floors[tr.scene] = measured_floors(views[tr.scene], refiners[tr.scene])
             if tr.localizer not in errors:
                 errors[tr.localizer] = localizer_errors(tr.localizer)
@@ -392,8 +394,8 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
             elif tr.localizer == "hloc":
                 settings = hloc_trust(HLOC_FEW_INLIERS).as_dict()
             refiner, floor = refiners[tr.scene], None
-            if map_floor == "measured":
-                floor = floors[tr.scene].without(str(tr.view))
+            if map_floor != "default":
+                floor = floors[tr.scene] if map_floor == "measured-all" else floors[tr.scene].without(str(tr.view))
                 key = (tr.scene, floor.depth, floor.deg)
                 if key not in floor_refiners:
                     base = refiners[tr.scene]
@@ -427,9 +429,11 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--localizers", nargs="+", default=list(LOCALIZERS), choices=LOCALIZERS)
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--map-floor", default="default", choices=("default", "measured"),
+    ap.add_argument("--map-floor", default="default", choices=("default", "measured", "measured-all"),
                     help="measured: each trial declares its map's floor measured on the scene's other views "
-                         "(hgsloc check --measure-floor's figure); default: the package's default floor")
+                         "(hgsloc check --measure-floor's figure); measured-all: on all of them, its own included "
+                         "(a bound: training views cover the query's part of the map); default: the package's "
+                         "default floor")
     ap.add_argument("--jobs", type=int, default=2, help="processes, each on its share of the cores")
     ap.add_argument("--raw", default=None, help="keep one JSON line per trial here (default: a temporary file)")
     ap.add_argument("--out", default=None, help="write the table as Markdown here")

@@ -57,7 +57,7 @@ def test_every_benchmark_has_a_smoke_run():
 def test_benchmark_smoke_run(name, tmp_path, monkeypatch):
     args, data, length = SMOKE[name]
     if length == "long" and not ALL:
-        pytest.skip("5-150 s: run with HGSLOC_BENCH_SMOKE=1")
+        pytest.skip("5-110 s: run with HGSLOC_BENCH_SMOKE=1")
     if data is not None:
         shared_path(data)
     monkeypatch.syspath_prepend(str(ROOT))
@@ -81,7 +81,7 @@ def test_map_scale_level_of_detail_rows(tmp_path, monkeypatch):
     """map_scale's query rows, exact and through the hierarchy, on the smallest split map (its children run as
     processes: long)."""
     if not ALL:
-        pytest.skip("5-150 s: run with HGSLOC_BENCH_SMOKE=1")
+        pytest.skip("5-110 s: run with HGSLOC_BENCH_SMOKE=1")
     monkeypatch.syspath_prepend(str(ROOT))
     monkeypatch.setenv("HGSLOC_LOD_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(sys, "argv", ["benchmarks/map_scale.py", "--k", "1", "--queries", "1", "--paths",

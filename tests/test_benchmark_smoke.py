@@ -30,6 +30,7 @@ SMOKE = {
     "presets": (["--cases", "room", "--presets", "fast", "--rounds", "1"], None, "fast"),
     "query_time": (["--child", "room", "--seeds", "7"], None, "fast"),
     "rule_model": (["--cases", "room", "--noise", "0"], None, "fast"),
+    "sigma": (["--views", "1", "--seeds", "2", "--degradations", "noise"], None, "fast"),
     "startup": (["--child"], None, "fast"),
     "throughput": (["--cases", "room", "--rounds", "1"], None, "long"),
     "tile_lists": (["--cases", "room", "--repeats", "1"], None, "fast"),

@@ -31,7 +31,7 @@ NO_FLOOR = dict(map_floor_depth=1e-7, map_floor_deg=1e-6)
 def view_rows(views: int, seeds: int, degradations: list[str]) -> list[str]:
     """Markdown rows: one per view and degradation, then the medians over the views per degradation."""
     import hgsloc_plugin as hp
-    from benchmarks.trials import REFERENCE_DEPTH, SCENES, SEED, Views, _random_view
+    from benchmarks.trials import REFERENCE_DEPTH, SCENES, SEED, Views, random_view
     from hgsloc_plugin.cli.demo.queries import degrade
     from hgsloc_plugin.evaluation.noise import apply_protocol
     from hgsloc_plugin.refine.plan import median_depth
@@ -42,7 +42,7 @@ def view_rows(views: int, seeds: int, degradations: list[str]) -> list[str]:
     refiner = hp.HGSLocPlugin(room.scene, hp.RefineConfig.preset("default", **NO_FLOOR))
     rows, summary = [], {d: [] for d in degradations}
     for k in range(views):
-        gt = _random_view("room", np.random.default_rng([SEED, SCENES.index("room"), k]))
+        gt = random_view("room", np.random.default_rng([SEED, SCENES.index("room"), k]))
         rgb, _ = render_reference(room.scene, room.cam, gt, room.bg)
         depth = median_depth(room.scene, room.cam, gt)
         cm = 100.0 * REFERENCE_DEPTH / depth

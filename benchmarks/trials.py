@@ -281,14 +281,14 @@ class Views:
         from tests.reference.render_torch import render_reference
 
         rng = np.random.default_rng([SEED, SCENES.index(self.name), k])
-        gt = _random_view(self.name, rng)
+        gt = random_view(self.name, rng)
         rgb, alpha = render_reference(self.scene, self.cam, gt, self.bg)
         img = degrade(np.asarray(rgb, np.float32), rng, gain=(0.85, 1.15), gamma=(0.9, 1.1), noise_std=0.015)
         del alpha, hp
         return gt, img, median_depth(self.scene, self.cam, gt)
 
 
-def _random_view(name: str, rng: np.random.Generator):
+def random_view(name: str, rng: np.random.Generator):
     """A random true pose of a synthetic scene."""
     import hgsloc_plugin as hp
     from hgsloc_plugin.cli.demo.scene import HALF

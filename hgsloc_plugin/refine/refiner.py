@@ -1,7 +1,10 @@
 """Refiner: refine one coarse camera pose on a 3DGS map.
 
 ``Refiner.refine`` reads top to bottom: plan (``plan.py``) -> gradient route -> (search route) -> (wide search
-route) (``routes.py``), each judged by the acceptance rule (``trust.judge``) -> result (``result.py``).
+route) (``routes.py``), each judged by the acceptance rule (``trust.judge``) -> result (``result.py``). Where the
+gradient route and the search agree (one minimum), the search's pose is judged again: without the alignment test
+when both were refused for weak alignment only, in the wide search's region when both were cut off by their own
+trust region's edge.
 """
 
 from __future__ import annotations
@@ -130,8 +133,14 @@ class Refiner:
                 logger.debug("query %s: search rejected (%s); its trust region leaves a wide search no room", name,
                              tried[-1][1].rejected)
                 return _result(ctx, tried, time.perf_counter() - t0)
-            logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
             ctx = dataclasses.replace(ctx, plan=wide)
+            if _agree_at_edge(tried, plan, cfg.tuning.same_minimum_pixels):
+                logger.debug("query %s: gradient route and search agree at their trust region's edge; the rule "
+                             "judges the search's pose in the wide search's region", name)
+                tried.append(self._judged(ctx, tried[-1][0]))
+                if tried[-1][1].ends_refinement():
+                    return _result(ctx, tried, time.perf_counter() - t0)
+            logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
             tried.append(self._judged(ctx, wide_search_route(ctx)))
         return _result(ctx, tried, time.perf_counter() - t0)
 
@@ -213,6 +222,17 @@ def _agree_but_weakly_aligned(tried: list[tuple[Candidate, Verdict]], plan: Plan
     applies. A far wrong minimum that one route reaches and the other does not stays refused."""
     return (_same_minimum(tried, plan, pixels)
             and all(v.rejected == WEAK_ALIGNMENT for _, v in tried))
+
+
+def _agree_at_edge(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
+    """Whether the gradient route and the search were both refused at the trust region's edge only, at poses within
+    ``pixels`` of each other: two explorations from different starts reached one minimum that the region cut off
+    (a prior farther off than the region allows). The wide search's larger region is the one to judge it in,
+    every test applying, before searching that region from the prior."""
+    if len(tried) != 2 or tried[0][0].route != "gradient" or not pixels > 0:
+        return False
+    return (all(v.rejected == TRUST_REGION_EDGE for _, v in tried)
+            and plan.pixels_apart(tried[0][0].pose, tried[1][0].pose) <= pixels)
 
 
 def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:

@@ -229,21 +229,22 @@ def _agree_at_edge(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: f
     ``pixels`` of each other: two explorations from different starts reached one minimum that the region cut off
     (a prior farther off than the region allows). The wide search's larger region is the one to judge it in,
     every test applying, before searching that region from the prior."""
-    if len(tried) != 2 or tried[0][0].route != "gradient" or not pixels > 0:
-        return False
-    return (all(v.rejected == TRUST_REGION_EDGE for _, v in tried)
-            and plan.pixels_apart(tried[0][0].pose, tried[1][0].pose) <= pixels)
+    return all(v.rejected == TRUST_REGION_EDGE for _, v in tried) and _routes_meet(tried, plan, pixels)
 
 
 def _same_minimum(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
     """Whether the gradient route and the search were both refused, neither at the trust region's edge, at poses
     within ``pixels`` of image motion at the final size (centre shift at the plan's depth plus rotation): the
     map's own minimum near the prior, where a wide search finds nothing else (``Tuning.same_minimum_pixels``)."""
-    if len(tried) != 2 or tried[0][0].route != "gradient" or not pixels > 0:
-        return False
-    if any(v.rejected in (None, TRUST_REGION_EDGE) for _, v in tried):
-        return False
-    return plan.pixels_apart(tried[0][0].pose, tried[1][0].pose) <= pixels
+    return (not any(v.rejected in (None, TRUST_REGION_EDGE) for _, v in tried)
+            and _routes_meet(tried, plan, pixels))
+
+
+def _routes_meet(tried: list[tuple[Candidate, Verdict]], plan: Plan, pixels: float) -> bool:
+    """Whether ``tried`` is the gradient route then the search, ending within ``pixels`` (> 0) of image motion at the
+    final size of each other."""
+    return (len(tried) == 2 and tried[0][0].route == "gradient" and pixels > 0
+            and plan.pixels_apart(tried[0][0].pose, tried[1][0].pose) <= pixels)
 
 
 def _query_prior(prior: QueryPrior | None, settings: dict) -> QueryPrior:

@@ -164,16 +164,15 @@ class Hierarchy:
         tested = np.flatnonzero(tested)
         view = (cameras, pose, max_shift, max_rotation_deg, config)
         near_view = np.zeros(len(small), bool)  # tested first: a cell outside its ancestor there is outside
-        below, levels = len(small), self.prefilter_levels(prefilter)
-        for lv in levels:  # each level's cells under the coarser prefilter levels' seen ones
-            cand = np.arange(self.level_start[lv], below)
-            for upper in levels:
-                if upper > lv:
-                    cand = cand[near_view[self.ancestor_at(upper)[cand]]]
+        below, upper = len(small), None
+        for lv in self.prefilter_levels(prefilter):  # coarsest first: a level's cells under the last level's seen
+            cand = np.arange(self.level_start[lv], below)  # ones (seen there implies seen at every coarser level)
+            if upper is not None:
+                cand = cand[near_view[self.ancestor_at(upper)[cand]]]
             near_view[cand] = self._seen(cand, *view)
-            below = self.level_start[lv]
-        for lv in levels:
-            tested = tested[near_view[self.ancestor_at(lv)[tested]]]
+            below, upper = self.level_start[lv], lv
+        if upper is not None:  # the finest prefilter level decides for every cell (those above it: their own test)
+            tested = tested[near_view[self.ancestor_at(upper)[tested]]]
         seen = np.zeros(len(small), bool)
         seen[tested] = self._seen(tested, *view)
         cells = cells[seen[cells]]

@@ -21,9 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.trials import PHOTO_DEGRADATION
+
 DEGRADATIONS = {
     "noise": dict(gain=(1.0, 1.0), gamma=(1.0, 1.0), noise_std=0.015, blur_sigma=0.0, occluder=False),
-    "photo": dict(gain=(0.85, 1.15), gamma=(0.9, 1.1), noise_std=0.015),  # as trials.Views
+    "photo": PHOTO_DEGRADATION,
 }
 NO_FLOOR = dict(map_floor_depth=1e-7, map_floor_deg=1e-6)
 
@@ -31,25 +33,21 @@ NO_FLOOR = dict(map_floor_depth=1e-7, map_floor_deg=1e-6)
 def view_rows(views: int, seeds: int, degradations: list[str]) -> list[str]:
     """Markdown rows: one per view and degradation, then the medians over the views per degradation."""
     import hgsloc_plugin as hp
-    from benchmarks.trials import REFERENCE_DEPTH, SCENES, SEED, Views, random_view
+    from benchmarks.trials import REFERENCE_DEPTH, SEED, Views
     from hgsloc_plugin.cli.demo.queries import degrade
     from hgsloc_plugin.evaluation.noise import apply_protocol
-    from hgsloc_plugin.refine.plan import median_depth
-    from tests.reference.render_torch import render_reference
 
     hp.init()
     room = Views("room")
     refiner = hp.HGSLocPlugin(room.scene, hp.RefineConfig.preset("default", **NO_FLOOR))
     rows, summary = [], {d: [] for d in degradations}
     for k in range(views):
-        gt = random_view("room", np.random.default_rng([SEED, SCENES.index("room"), k]))
-        rgb, _ = render_reference(room.scene, room.cam, gt, room.bg)
-        depth = median_depth(room.scene, room.cam, gt)
+        gt, rgb, depth, _ = room.rendered(k)
         cm = 100.0 * REFERENCE_DEPTH / depth
         for name in degradations:
             offsets, rot, sig_t, sig_r = [], [], [], []
             for s in range(seeds):
-                img = degrade(np.asarray(rgb, np.float32), np.random.default_rng([SEED, k, s]), **DEGRADATIONS[name])
+                img = degrade(rgb, np.random.default_rng([SEED, k, s]), **DEGRADATIONS[name])
                 prior = apply_protocol(gt, f"{0.5 * depth:.6f}cm,0.3deg", np.random.default_rng([SEED, k, s, 1]))
                 r = refiner.refine(img, room.cam, prior)
                 if r.accepted:

@@ -63,6 +63,8 @@ RIGHT_CM, RIGHT_DEG = 2.0, 1.0
 #: 7-Scenes' typical median depth: a localizer's metric error is scaled by a view's depth over this
 REFERENCE_DEPTH = 2.0
 SEED = 2026
+#: the synthetic views' photo degradation (``demo.queries.degrade``'s arguments)
+PHOTO_DEGRADATION = dict(gain=(0.85, 1.15), gamma=(0.9, 1.1), noise_std=0.015)
 #: random views per synthetic scene (room, stripes, donut); localizer ``L``'s trial ``i`` takes view
 #: ``(L * SYNTHETIC_VIEWS / 5 + i) % SYNTHETIC_VIEWS``: every view serves several localizers' errors, and rendering
 #: the views with the reference renderer (~2 s each on one core) does not dominate the run
@@ -274,21 +276,25 @@ class Views:
             self._cache[k] = self._synthetic(k)
         return self._cache[k]
 
-    def _synthetic(self, k: int):
-        import hgsloc_plugin as hp
-        from hgsloc_plugin.cli.demo.queries import degrade
+    def rendered(self, k: int):
+        """(true pose, the reference renderer's image [H, W, 3] float32 before any degradation, median depth, the
+        view's random stream after drawing the pose) of synthetic view ``k``."""
         from hgsloc_plugin.refine.plan import median_depth
         from tests.reference.render_torch import render_reference
 
         rng = np.random.default_rng([SEED, SCENES.index(self.name), k])
-        gt = random_view(self.name, rng)
-        rgb, alpha = render_reference(self.scene, self.cam, gt, self.bg)
-        img = degrade(np.asarray(rgb, np.float32), rng, gain=(0.85, 1.15), gamma=(0.9, 1.1), noise_std=0.015)
-        del alpha, hp
-        return gt, img, median_depth(self.scene, self.cam, gt)
+        gt = _random_view(self.name, rng)
+        rgb, _ = render_reference(self.scene, self.cam, gt, self.bg)
+        return gt, np.asarray(rgb, np.float32), median_depth(self.scene, self.cam, gt), rng
+
+    def _synthetic(self, k: int):
+        from hgsloc_plugin.cli.demo.queries import degrade
+
+        gt, rgb, depth, rng = self.rendered(k)
+        return gt, degrade(rgb, rng, **PHOTO_DEGRADATION), depth
 
 
-def random_view(name: str, rng: np.random.Generator):
+def _random_view(name: str, rng: np.random.Generator):
     """A random true pose of a synthetic scene."""
     import hgsloc_plugin as hp
     from hgsloc_plugin.cli.demo.scene import HALF

@@ -82,12 +82,14 @@ def small_sh3():
 
 class FakeScorer:
     """A scorer of known costs for the rule's tests: ``cost(poses) -> [B]`` is called per batch (each batch kept in
-    ``batches``), and ``band_gradients`` returns ``jtj`` [6, 6] with 12 band gradients whose cluster-robust meat is
-    ``scale * jtj``, so the pose's covariance (``uncertainty.pose_uncertainty``) is ``scale * jtj^-1`` plus the
-    map's floor."""
+    ``batches``), and ``gradient_noise`` returns ``jtj`` [6, 6] with 12 band gradients whose cluster-robust meat is
+    ``scale * jtj`` and the pixel-noise covariance ``noise_scale * jtj`` (default ``scale``), so the pose's
+    covariances (``uncertainty.pose_uncertainty``, ``pixel_noise_uncertainty``) are ``scale * jtj^-1`` and
+    ``noise_scale * jtj^-1`` plus the map's floor."""
 
-    def __init__(self, cost, jtj, scale=1.0):
+    def __init__(self, cost, jtj, scale=1.0, noise_scale=None):
         self.cost, self.jtj, self.scale, self.batches = cost, np.asarray(jtj, np.float64), scale, []
+        self.noise_scale = scale if noise_scale is None else noise_scale
 
     def __call__(self, poses):
         self.batches.append(list(poses))
@@ -96,10 +98,10 @@ class FakeScorer:
     def remember(self, pose, cost, metric):
         pass
 
-    def band_gradients(self, pose, bands):
+    def gradient_noise(self, pose, bands):
         w, v = np.linalg.eigh(0.5 * (self.jtj + self.jtj.T)) if np.all(np.isfinite(self.jtj)) else (None, None)
         if w is None:
-            return self.jtj, np.zeros((12, 6))
+            return self.jtj, np.zeros((12, 6)), np.zeros((6, 6))
         root = v * np.sqrt(np.clip(w, 0.0, None))  # root @ root.T == jtj
         g = 0.5 * np.sqrt(self.scale) * np.vstack([root.T, root.T])  # [12, 6]: g.T g = scale (12 - 6) / 12 jtj
-        return self.jtj, g
+        return self.jtj, g, self.noise_scale * self.jtj

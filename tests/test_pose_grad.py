@@ -235,7 +235,7 @@ def test_the_rule_reuses_the_render_of_the_polished_pose():
     rendered, render = [], r.window_cost
     scorer.renderer = SimpleNamespace(window_cost=lambda camera, poses, *a, **k: rendered.extend(
         p.as_array().tobytes() for p in poses) or render(camera, poses, *a, **k),
-        pose_gradient_bands=r.pose_gradient_bands)
+        pose_gradient_noise=r.pose_gradient_noise)
     plan = SimpleNamespace(coarse_pose=start, prior_error=None, prior_error_deg=None, depth=depth,
                            levels=((1.0, 0.1),), travel=lambda p: 0.1)
     cand = Candidate("gradient", pose, math.nan, math.nan, start, polish=[st])

@@ -138,7 +138,7 @@ def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
     pose is fused with the prior, as an independent Gaussian product computes it; a prior far more precise than
     the refinement holds the pose near it, a vague one leaves the refinement as it is; a prior so precise that the
     fusion is no better in cost is kept ("prior more precise"); one part given pulls only that part."""
-    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD
+    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD, fused_covariance
 
     scene, cam, gt, img, prior = room
     free = hp.HGSLocPlugin(scene).refine(img, cam, prior)
@@ -147,12 +147,16 @@ def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
     st, sr = free.sigma_t, free.sigma_r_deg
     fused = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=st / 10, prior_error_deg=sr / 10)
     assert fused.accepted and fused.fused and fused.rejected is None and fused.search_pose == free.pose
-    assert _close(fused.pose, _reference_fusion(free.pose, free.covariance, prior, st / 10, sr / 10))
+    assert _close(fused.pose, _reference_fusion(free.pose, free.rule_covariance, prior, st / 10, sr / 10))
     # moved off the refined pose (towards the prior along the directions the image constrains least; along the
     # well-constrained ones the refinement stays), and more certain than either alone
     assert fused.pose.errors_to(free.pose)[1] > 0.1 * free.pose.errors_to(prior)[1]
     assert fused.sigma_t < min(st, PRIOR_SPREAD * st / 10 * math.sqrt(3))
     assert fused.sigma_r_deg < min(sr, PRIOR_SPREAD * sr / 10 * math.sqrt(3))
+    # the returned covariance is the fusion's spread when the refined pose's error has the returned covariance
+    # (``fused_covariance``); the rule's is the posterior it weighed by
+    np.testing.assert_allclose(fused.covariance, fused_covariance(free.covariance, free.rule_covariance, st / 10,
+                                                                  sr / 10), rtol=1e-6)
     assert fused.cost_final < fused.cost_initial and fused.confidence > 0
     rec = json.loads(json.dumps(fused.to_dict()))
     assert rec["prior_error"] == st / 10 and rec["prior_error_deg"] == sr / 10 and rec["fused"] is True
@@ -173,10 +177,10 @@ def test_a_prior_of_known_error_is_fused_with_the_refined_pose(room):
     assert kept.search_pose == free.pose  # what was refused, for the record
     # one part given: only that part pulls
     rot_only = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error_deg=sr / 10)
-    assert _close(rot_only.pose, _reference_fusion(free.pose, free.covariance, prior, None, sr / 10))
+    assert _close(rot_only.pose, _reference_fusion(free.pose, free.rule_covariance, prior, None, sr / 10))
     assert rot_only.pose.errors_to(prior)[1] < 0.5 * free.pose.errors_to(prior)[1]
     t_only = hp.HGSLocPlugin(scene).refine(img, cam, prior, prior_error=st / 10)
-    assert _close(t_only.pose, _reference_fusion(free.pose, free.covariance, prior, st / 10, None))
+    assert _close(t_only.pose, _reference_fusion(free.pose, free.rule_covariance, prior, st / 10, None))
     assert not _close(t_only.pose, rot_only.pose, 1e-4 * st)
     with pytest.raises(ValueError, match="prior_error"):
         hp.RefineConfig(prior_error=0.0)

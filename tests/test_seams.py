@@ -120,7 +120,7 @@ def test_the_refinement_uses_only_the_renderer_protocol(settings):
     """Through ``refine``, with a working set following the poses and on the search route, the refinement asks a
     renderer for nothing ``RendererLike`` does not name: a backend with exactly those methods refines to the same
     pose."""
-    assert {"full", "largest", "selections", "working_set", "pose_gradient_bands"} <= ProtocolOnly.NAMES
+    assert {"full", "largest", "selections", "working_set", "pose_gradient_noise"} <= ProtocolOnly.NAMES
     cam = hp.Camera(96, 72, 84.0, 84.0, 48.0, 36.0)
     scene, gt, img, prior = room_query(cam, pose_seed=2, noise_deg=1.0, noise_shift=0.03, noise_seed=5)
     config = hp.RefineConfig.preset("default", **settings)
@@ -200,7 +200,7 @@ def test_a_second_backend_refines_to_the_package_renderers_pose(preset):
     shift, angle = other.pose.errors_to(plain.pose)
     depth = float(np.linalg.norm(gt.centre() - scene.means.mean(axis=0)))
     assert shift < 1e-4 * depth and angle < 0.01, (shift / depth, angle)
-    assert backend.calls["pose_gradient"] > 0 and backend.calls["pose_gradient_bands"] == 1
+    assert backend.calls["pose_gradient"] > 0 and backend.calls["pose_gradient_noise"] == 1
     assert preset == "default" or backend.calls["window_cost"] > 5
 
 

@@ -18,6 +18,7 @@ from hgsloc_plugin.adapters.confidence import inlier_prior_error, inlier_trust
 from hgsloc_plugin.core.units import parse_angle, parse_length
 from hgsloc_plugin.evaluation.noise import se3_noise
 from hgsloc_plugin.refine.trust import MIN_SIGNIFICANCE, assess, settled
+from hgsloc_plugin.refine.uncertainty import sigmas
 
 from .conftest import FakeScorer, room_query, shared_path
 from .test_cli_demo import tiny_case  # noqa: F401  (module-scoped fixture shared with the CLI tests)
@@ -197,7 +198,9 @@ def test_real_photo_map_bias_is_held_back_by_a_localizer_set_trust_region():
     assert confident.accepted and confident.fused and confident.route == "gradient"
     t1, a1 = confident.pose.errors_to(gt0)
     assert t1 < t0 and a1 < 0.7 * a0 and t1 < 0.5 * free.pose.errors_to(gt0)[0], (t0, a0, t1, a1)
-    assert confident.sigma_t < free.sigma_t and confident.sigma_r_deg < free.sigma_r_deg
+    # narrower under the covariance the fusion weighed by (the returned one, the pixel noise's carried through a
+    # fusion weighed by the wider rule's, need not be: ``uncertainty.fused_covariance``)
+    assert np.all(np.array(sigmas(confident.rule_covariance)) < np.array(sigmas(free.rule_covariance)))
     # with the count's trust region too (what `hgsloc refine` sets for an ACE file) the prior is not made worse
     region = hp.HGSLocPlugin(scene).refine(img0, cam, priors[0], name=n0, prior=inlier_trust(4500))
     t2, a2 = region.pose.errors_to(gt0)
@@ -374,10 +377,11 @@ def test_resume_retries_failed_queries(tiny_case, tmp_path):  # noqa: F811
             assert rep2["queries"][n] == rep["queries"][n], "done queries are not redone"
 
 
-def _quadratic_judge(model: str, scale: float = 1e-6):
+def _quadratic_judge(model: str, scale: float = 1e-6, noise_scale: float | None = None):
     """Judge a candidate on a quadratic cost around it, ``0.1 + g.xi + xi' A xi / 2``, with the polish's model
     ``model``: "exact" (the cost's ``A`` and ``g``), "wrong" (curvatures ranked the other way round, no gradient)
-    or "none" (not finite); ``scale``: the pose's covariance in units of the cost's ``A^-1`` (``FakeScorer``).
+    or "none" (not finite); ``scale`` / ``noise_scale``: the pose's band / pixel-noise covariance in units of the
+    cost's ``A^-1`` (``FakeScorer``).
     Returns (verdict, the batches scored, the cost's 12 one-pixel rises)."""
     from types import SimpleNamespace
 
@@ -401,7 +405,7 @@ def _quadratic_judge(model: str, scale: float = 1e-6):
         xi = best.offset_in_camera(p)
         return 0.1 + g @ xi + 0.5 * xi @ A @ xi
 
-    scorer = FakeScorer(lambda poses: [cost(p) for p in poses], A, scale)
+    scorer = FakeScorer(lambda poses: [cost(p) for p in poses], A, scale, noise_scale)
     batches = scorer.batches
 
     plan = SimpleNamespace(coarse_pose=coarse, prior_error=None, prior_error_deg=None, depth=depth,
@@ -448,6 +452,47 @@ def test_a_prior_within_the_refined_pose_uncertainty_is_kept():
     assert vague.rejected == WITHIN_UNCERTAINTY and vague.ends_refinement() and vague.confidence == 0.0
     assert vague.assessment.prior_distance < MIN_PRIOR_DISTANCE
     assert vague.pose is batches[0][0] and vague.cost == 1.0  # the coarse pose, as scored
+
+
+def test_the_rule_weighs_by_the_band_covariance_and_returns_the_pixel_noise_one():
+    """The rule's tests, the prior's distance and the confidence use the band sandwich; the returned covariance
+    and sigmas are the pixel-noise sandwich plus the floor (``pixel_noise_uncertainty``), here 100x narrower."""
+    from hgsloc_plugin.refine.trust import MIN_PRIOR_DISTANCE, WITHIN_UNCERTAINTY
+    from hgsloc_plugin.refine.uncertainty import pixel_noise_uncertainty, within_tolerance
+
+    same, _, _ = _quadratic_judge("exact")
+    narrow, _, _ = _quadratic_judge("exact", noise_scale=1e-8)
+    assert same.accepted and narrow.accepted and narrow.pose.as_array().tolist() == same.pose.as_array().tolist()
+    assert narrow.assessment.prior_distance == same.assessment.prior_distance >= MIN_PRIOR_DISTANCE
+    floor = pixel_noise_uncertainty(np.eye(6), np.zeros((6, 6)), 2.0)[0]  # the depth of _quadratic_judge's plan
+    np.testing.assert_allclose(narrow.covariance - floor, (same.covariance - floor) / 100, rtol=1e-9, atol=1e-20)
+    assert narrow.sigma_t < same.sigma_t and narrow.sigma_r_deg < same.sigma_r_deg
+    assert narrow.confidence == same.confidence < within_tolerance(narrow.sigma_t, narrow.sigma_r_deg, 2.0)
+    # a band covariance too wide for the prior's distance refuses, however narrow the pixel noise
+    vague, _, _ = _quadratic_judge("exact", scale=1e-2, noise_scale=1e-8)
+    assert vague.rejected == WITHIN_UNCERTAINTY
+
+
+def test_fused_covariance_is_the_spread_of_the_fusion_it_describes():
+    """The fusion weighs the refined pose by one covariance while its error has another: over 200,000 draws of
+    both errors the fused pose's spread is ``fused_covariance`` (and the posterior itself when the two agree)."""
+    from hgsloc_plugin.refine.uncertainty import PRIOR_SPREAD, fused_covariance
+
+    rng = np.random.default_rng(5)
+    root = rng.normal(size=(6, 6))
+    weighed_by = root @ root.T * 1e-4 + np.eye(6) * 1e-5
+    cov = 0.1 * weighed_by + np.diag(rng.uniform(0, 1e-6, 6))
+    prior_error, prior_error_deg = 0.01, 0.5
+    info = np.r_[[(PRIOR_SPREAD * np.radians(prior_error_deg)) ** -2] * 3, [(PRIOR_SPREAD * prior_error) ** -2] * 3]
+    post = np.linalg.inv(np.diag(info) + np.linalg.inv(weighed_by))
+    n = 200_000
+    refined = rng.multivariate_normal(np.zeros(6), cov, n)
+    prior = rng.normal(size=(n, 6)) / np.sqrt(info)
+    fused = (post @ (np.linalg.inv(weighed_by) @ refined.T + info[:, None] * prior.T)).T
+    np.testing.assert_allclose(fused_covariance(cov, weighed_by, prior_error, prior_error_deg), np.cov(fused.T),
+                               rtol=0.03, atol=0.03 * np.abs(np.cov(fused.T)).max())
+    np.testing.assert_allclose(fused_covariance(weighed_by, weighed_by, prior_error, prior_error_deg), post,
+                               rtol=1e-9)
 
 
 def test_model_agrees_needs_positive_rises_of_one_scale():

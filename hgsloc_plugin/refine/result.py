@@ -23,14 +23,16 @@ class RefineResult:
         cost_initial / cost_final: the cost (lower is better) of the coarse and the returned pose at the size
             where the acceptance rule judged (the polish's when it runs, else the final scoring size).
         accepted: the refined pose passed the acceptance rule (``refine/trust.py``) and is returned.
-        confidence: in [0, 1], 0 when not accepted; for a polished pose, the probability under its own covariance
-            that it lies within 1 % of the median depth and 1 degree of the truth (``uncertainty.within_tolerance``);
-            nan with ``acceptance="cost"`` (nothing measured).
+        confidence: in [0, 1], 0 when not accepted; for a polished pose, the probability under the rule's
+            covariance (``uncertainty.pose_uncertainty``, wider than ``covariance``) that it lies within 1 % of the
+            median depth and 1 degree of the truth (``uncertainty.within_tolerance``); a ranking of right answers
+            above wrong ones more than a calibrated probability; nan with ``acceptance="cost"`` (nothing measured).
         sigma_t / sigma_r_deg / covariance: the returned pose's estimated standard deviations (3-D: the root of
             each covariance block's trace, so an honest one holds the error within 1 sigma about 61 % of the
-            time) and the [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``), cluster-robust
-            over bands of image rows plus the map's floor (``uncertainty.pose_uncertainty``); nan / None when not
-            measured.
+            time) and the [6, 6] covariance of ``xi = (w, v)`` (``Pose.perturbed_in_camera``): the image's
+            pixel noise plus the map's floor (``uncertainty.pixel_noise_uncertainty``); nan / None when not
+            measured. rule_covariance: the wider [6, 6] covariance the rule weighed by (the prior's distance, the
+            fusion, the confidence: ``uncertainty.pose_uncertainty``); None when not measured.
         fused: the returned pose is the refined one fused with the prior of known error.
         rejected: why the refined pose was not returned ("no improvement", "insignificant", "weak alignment",
             "flat valley", "trust-region edge", "level inconsistency", "prior more precise"); None when accepted.
@@ -59,6 +61,7 @@ class RefineResult:
     sigma_t: float = math.nan
     sigma_r_deg: float = math.nan
     covariance: np.ndarray | None = None
+    rule_covariance: np.ndarray | None = None
     rejected: str | None = None
     search_pose: Pose | None = None
     search_cost: float = math.nan

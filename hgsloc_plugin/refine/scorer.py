@@ -63,12 +63,13 @@ class Scorer:
         if metric == self.metric:
             self._cache.setdefault(pose.as_array().tobytes(), float(cost))
 
-    def band_gradients(self, pose: Pose, bands: int) -> tuple[np.ndarray, np.ndarray]:
-        """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose`` and its gradient per horizontal band of rows
-        [bands, 6], at this scorer's size, query and renderer (one derivative pass; the metric must be cs)."""
+    def gradient_noise(self, pose: Pose, bands: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose``, its gradient per horizontal band of rows
+        [bands, 6] and the gradient's covariance [6, 6] under independent pixel noise, at this scorer's size, query
+        and renderer (one derivative pass; the metric must be cs)."""
         if self.metric != "cs":
-            raise ValueError(f"band gradients are the cs cost's, the scorer's metric is {self.metric}")
-        return self.renderer.pose_gradient_bands(self.camera, pose, self._target, self.background, self.mask_alpha,
+            raise ValueError(f"the gradient's noise is the cs cost's, the scorer's metric is {self.metric}")
+        return self.renderer.pose_gradient_noise(self.camera, pose, self._target, self.background, self.mask_alpha,
                                                  bands)
 
     def __call__(self, poses: list[Pose]) -> np.ndarray:

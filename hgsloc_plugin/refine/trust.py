@@ -8,7 +8,8 @@ of one pixel of image motion around it. The candidate is returned only when it p
 "flat valley" (some move rises less than ``MIN_SHARPNESS`` kappa), "trust-region edge" (beyond ``EDGE_FRACTION``
 of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps),
 and for a polished pose without a prior of known error "within uncertainty" (the prior lies less than
-``MIN_PRIOR_DISTANCE`` of the pose's own standard deviations from it: not clearly better than the prior).
+``MIN_PRIOR_DISTANCE`` of the pose's own standard deviations, under the rule's band covariance, from it: not
+clearly better than the prior).
 A polished candidate first renders 6 of the 12 moves (``model_moves``): its last polish stage's Gauss-Newton model
 ranks them, and the rule renders the pair it predicts to rise least (the flattest axis: the minimum) and the four
 at the middle of the ranking (kappa: their median). When the rendered rises do not follow the model
@@ -34,6 +35,8 @@ from .uncertainty import (
     FLOOR_DEG,
     FLOOR_DEPTH,
     fuse_with_prior,
+    fused_covariance,
+    pixel_noise_uncertainty,
     pose_uncertainty,
     prior_distance,
     sigmas,
@@ -84,12 +87,13 @@ class Assessment:
         alignment: kappa / best cost (nan when not checked; inf at a best cost of zero or below, a perfect match
             up to rounding, with a positive kappa).
         confidence: summary in [0, 1]: min(1, significance / 4) * min(1, sharpness / 0.1) * (1 - travel^4);
-            0 when rejected (an accepted polished pose's verdict replaces it by :func:`within_tolerance`).
+            0 when rejected (an accepted polished pose's verdict replaces it by :func:`within_tolerance` under the
+            rule's covariance).
         rejected: None when accepted, else the reason ("insignificant", "flat valley", ...).
-        prior_distance: the prior's Mahalanobis distance from a polished pose under its uncertainty
-            (:func:`prior_distance`; nan when not measured).
-        within: :func:`within_tolerance` of a polished pose's own uncertainty, accepted or not (nan when not
-            measured).
+        prior_distance: the prior's Mahalanobis distance from a polished pose under the rule's covariance
+            (``uncertainty.pose_uncertainty``, :func:`prior_distance`; nan when not measured).
+        within: :func:`within_tolerance` of a polished pose under the rule's covariance, accepted or not (nan
+            when not measured).
     """
 
     significance: float
@@ -169,8 +173,9 @@ def assess(cost_initial: float, cost_best: float, rises: np.ndarray, travel: flo
 class Verdict:
     """What the rule decided about a candidate: the returned pose and its cost (the coarse pose and its cost when
     refused), why it was refused (None: accepted), the rule's measurements, the confidence (nan when nothing was
-    measured), whether the pose is a fusion with the prior, and its covariance [6, 6] and sigmas (scene units,
-    degrees) when known."""
+    measured), whether the pose is a fusion with the prior, and its returned covariance [6, 6] and sigmas (scene
+    units, degrees; ``uncertainty.pixel_noise_uncertainty``, through the fusion) and the rule's covariance [6, 6]
+    (``uncertainty.pose_uncertainty``, through the fusion) when known."""
 
     pose: Pose
     cost: float
@@ -181,6 +186,7 @@ class Verdict:
     covariance: np.ndarray | None = None
     sigma_t: float = math.nan
     sigma_r_deg: float = math.nan
+    rule_covariance: np.ndarray | None = None
 
     @property
     def accepted(self) -> bool:
@@ -211,9 +217,11 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
     moves = pixel_moves(cand.pose, plan, cam, pivot) if trust else []
     model = model_moves(cand, moves, cam)
     first = moves if model is None else [moves[i] for i in model[0]]
-    uncertainty = None
+    uncertainty = returned = None  # the rule's covariance and sigmas, and the returned ones
     if cand.polish:
-        uncertainty = pose_uncertainty(*scorer.band_gradients(cand.pose, BANDS), plan.depth, *floor)
+        jtj, band_grads, noise = scorer.gradient_noise(cand.pose, BANDS)
+        uncertainty = pose_uncertainty(jtj, band_grads, plan.depth, *floor)
+        returned = pixel_noise_uncertainty(jtj, noise, plan.depth, *floor)
     fuses = uncertainty is not None and (plan.prior_error is not None or plan.prior_error_deg is not None)
     fusion = None  # (fused pose, its covariance): a polished pose of bounded uncertainty and a prior of known error
     if fuses and np.all(np.isfinite(uncertainty[0])):
@@ -249,6 +257,9 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
         logger.debug("query %s: fused with the prior (expected error %s / %s deg): cost %.6g, coarse %.6g", name,
                      plan.prior_error, plan.prior_error_deg, fused_cost, cand.cost_initial)
         if fused:
+            if np.all(np.isfinite(returned[0])):  # the fusion weighed the refined pose by the rule's covariance
+                cov = fused_covariance(returned[0], uncertainty[0], plan.prior_error, plan.prior_error_deg)
+                returned = (cov, *sigmas(cov))
             pose, cost, uncertainty = fusion[0], fused_cost, (fusion[1], *sigmas(fusion[1]))
         else:  # the fusion is no better than the prior, or the refined pose's uncertainty is unbounded
             rejected = PRIOR_MORE_PRECISE
@@ -257,10 +268,11 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
                      assessment.to_dict() if assessment else {})
         return Verdict(coarse, cand.cost_initial, rejected, assessment, 0.0)
     out = Verdict(pose, cost, None, assessment, confidence if assessment is not None else math.nan, fused)
-    if uncertainty is not None:
-        out.covariance, out.sigma_t, out.sigma_r_deg = uncertainty
-        if assessment is not None:
-            out.confidence = within_tolerance(out.sigma_t, out.sigma_r_deg, plan.depth)
+    if returned is not None:
+        out.covariance, out.sigma_t, out.sigma_r_deg = returned
+        out.rule_covariance = uncertainty[0]
+        if assessment is not None:  # under the rule's covariance: what the bands' disagreement says is kept in it
+            out.confidence = within_tolerance(uncertainty[1], uncertainty[2], plan.depth)
     return out
 
 

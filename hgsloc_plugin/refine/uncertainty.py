@@ -1,10 +1,14 @@
 """The uncertainty of a polished pose, the confidence it gives, and its fusion with a prior of known error.
 
 All in ``xi = (w, v)``, the camera-frame perturbation of ``Pose.perturbed_in_camera``: rotation first (radians),
-then the translation's shift (scene units). The covariance is a cluster-robust sandwich over bands of image rows
-plus the map's floor (:func:`pose_uncertainty`); the confidence is the probability under it that the pose lies
-within 1 % of the depth and 1 degree of the truth (:func:`within_tolerance`); a prior of known median error is
-fused by the posterior mean (:func:`fuse_with_prior`). Where the factors come from: ``benchmarks/trials.md``.
+then the translation's shift (scene units). A polished pose has two covariances. The rule's is a cluster-robust
+sandwich over bands of image rows plus the map's floor (:func:`pose_uncertainty`): conservative, it weighs the
+prior's distance and the fusion with a prior of known median error (the posterior mean, :func:`fuse_with_prior`),
+and the confidence is the probability under it that the pose lies within 1 % of the depth and 1 degree of the
+truth (:func:`within_tolerance`): where the bands disagree, the map explains the image badly, and the confidence
+falls. The returned sigmas are the image's pixel noise plus the floor (:func:`pixel_noise_uncertainty`, carried
+through a fusion by :func:`fused_covariance`). Where the factors come from: ``benchmarks/trials.md``,
+``benchmarks/sigma.md``.
 """
 
 from __future__ import annotations
@@ -32,6 +36,17 @@ def sigmas(cov: np.ndarray) -> tuple[float, float]:
             math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0))))
 
 
+def _prior_information(prior_error: float | None, prior_error_deg: float | None) -> np.ndarray:
+    """[6] the diagonal information of a prior of expected (median) error ``prior_error`` (scene units) and
+    ``prior_error_deg``; 0 for an unknown part."""
+    info = np.zeros(6)
+    if prior_error_deg is not None:
+        info[:3] = (PRIOR_SPREAD * math.radians(prior_error_deg)) ** -2
+    if prior_error is not None:
+        info[3:] = (PRIOR_SPREAD * prior_error) ** -2
+    return info
+
+
 def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float | None,
                     prior_error_deg: float | None) -> tuple[Pose, np.ndarray]:
     """Posterior mean of a refined ``pose`` and the coarse ``prior``.
@@ -47,11 +62,7 @@ def fuse_with_prior(pose: Pose, cov: np.ndarray, prior: Pose, prior_error: float
         centre and on the rotation is diagonal: ``xi = (P + C^-1)^-1 P xi_p`` with ``P`` the prior's information.
     """
     xp = pose.offset_in_camera(prior)
-    info = np.zeros(6)
-    if prior_error_deg is not None:
-        info[:3] = (PRIOR_SPREAD * math.radians(prior_error_deg)) ** -2
-    if prior_error is not None:
-        info[3:] = (PRIOR_SPREAD * prior_error) ** -2
+    info = _prior_information(prior_error, prior_error_deg)
     post = np.linalg.inv(np.diag(info) + np.linalg.inv(cov))
     post = 0.5 * (post + post.T)
     xi = post @ (info * xp)
@@ -84,42 +95,84 @@ def within_tolerance(sigma_t: float, sigma_r_deg: float, depth: float) -> float:
     return p_t * p_r
 
 
+def _infinite() -> tuple[np.ndarray, float, float]:
+    return np.full((6, 6), math.inf), math.inf, math.inf
+
+
+def _sandwich(jtj: np.ndarray, meat: np.ndarray, depth: float, floor_depth: float,
+              floor_deg: float) -> tuple[np.ndarray, float, float]:
+    """``H^-1 meat H^-1`` plus the map's floor, with its sigmas; infinite where ``jtj`` is singular or not finite."""
+    H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
+    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or not np.all(np.isfinite(meat)):
+        return _infinite()
+    ev = np.linalg.eigvalsh(H)
+    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
+        return _infinite()
+    Hi = np.linalg.inv(H)
+    cov = Hi @ meat @ Hi
+    floor = [math.radians(floor_deg) ** 2 / 3.0] * 3 + [(floor_depth * depth) ** 2 / 3.0] * 3
+    cov = 0.5 * (cov + cov.T) + np.diag(floor)
+    return (cov, *sigmas(cov))
+
+
 def pose_uncertainty(jtj: np.ndarray, band_grads: np.ndarray, depth: float, floor_depth: float = FLOOR_DEPTH,
                      floor_deg: float = FLOOR_DEG) -> tuple[np.ndarray, float, float]:
-    """Covariance and standard deviations of a polished pose, cluster-robust over bands of image rows.
+    """The rule's covariance of a polished pose, cluster-robust over bands of image rows (what the prior's distance
+    and the fusion weigh by).
 
     The pose minimises a sum of per-band costs; how far each band's gradient pulls at the minimum is what the
     residuals the map cannot explain (its own errors, lighting, occluders, a wrong minimum) do to the pose, in
     whatever units the image has: the sandwich ``H^-1 (K / (K - 6) sum_c g_c g_c^T) H^-1`` over the ``K`` bands
     (``BANDS``), plus the map's floor (``floor_depth`` of the depth and ``floor_deg``, isotropic 3-D sigmas) that no
-    band sees.
+    band sees. It errs wide: on a perfect map the bands' pulls cancel in their sum and it is 4-6x the error
+    (``benchmarks/sigma.md``); the returned sigma is :func:`pixel_noise_uncertainty`'s.
 
     Args:
         jtj: [6, 6] Gauss-Newton Hessian of the cs cost in ``xi = (w, v)`` (``Pose.perturbed_in_camera``) at the
-            pose; band_grads: [K, 6] the cost's gradient per band at the same pose (``Scorer.band_gradients``);
+            pose; band_grads: [K, 6] the cost's gradient per band at the same pose (``Scorer.gradient_noise``);
             depth: the query's median depth (scene units); floor_depth / floor_deg: the map's floor
             (``Tuning.map_floor_depth`` / ``map_floor_deg``).
 
     Returns:
         (covariance [6, 6] of xi, sigma of the camera centre in scene units, sigma of the rotation in degrees);
         the sigmas are the root of the trace of the blocks (the centre moves by ``-R^T v``, a rotation, so its
-        trace is ``v``'s). Infinite where ``jtj`` is singular or not finite.
+        trace is ``v``'s). Infinite where ``jtj`` is singular or not finite, or with 6 bands or fewer.
     """
-    H = 0.5 * (np.asarray(jtj, np.float64) + np.asarray(jtj, np.float64).T)
     G = np.asarray(band_grads, np.float64)
-    if H.shape != (6, 6) or not np.all(np.isfinite(H)) or G.ndim != 2 or not np.all(np.isfinite(G)):
-        return np.full((6, 6), math.inf), math.inf, math.inf
-    ev = np.linalg.eigvalsh(H)
-    if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
-        return np.full((6, 6), math.inf), math.inf, math.inf
-    Hi = np.linalg.inv(H)
-    if len(G) <= 6:
-        return np.full((6, 6), math.inf), math.inf, math.inf
-    meat = (G.T @ G) * (len(G) / (len(G) - 6.0))  # the pose absorbs 6 of the bands' degrees of freedom
-    cov = Hi @ meat @ Hi
-    floor = [math.radians(floor_deg) ** 2 / 3.0] * 3 + [(floor_depth * depth) ** 2 / 3.0] * 3
-    cov = 0.5 * (cov + cov.T) + np.diag(floor)
-    return (cov, *sigmas(cov))
+    if G.ndim != 2 or len(G) <= 6:
+        return _infinite()
+    return _sandwich(jtj, (G.T @ G) * (len(G) / (len(G) - 6.0)), depth, floor_depth, floor_deg)
+
+
+def pixel_noise_uncertainty(jtj: np.ndarray, gradient_cov: np.ndarray, depth: float,
+                            floor_depth: float = FLOOR_DEPTH,
+                            floor_deg: float = FLOOR_DEG) -> tuple[np.ndarray, float, float]:
+    """The covariance a polished pose is returned with: the image's pixel noise plus the map's floor.
+
+    ``H^-1 C H^-1``, with ``C`` the cs gradient's covariance under independent noise in the query's pixels, each
+    pixel's variance read off the residual the map leaves there (``render/gradient_noise.py``), plus the floor: what
+    moves a whole view coherently (the map's errors, exposure) is not independent between pixels, and is measured on
+    views with known poses (``hgsloc check --measure-floor``). Arguments and returns as :func:`pose_uncertainty`'s,
+    with ``gradient_cov`` [6, 6] for the bands; infinite where ``jtj`` is singular or either is not finite.
+    """
+    C = np.asarray(gradient_cov, np.float64)
+    if C.shape != (6, 6):
+        return _infinite()
+    return _sandwich(jtj, C, depth, floor_depth, floor_deg)
+
+
+def fused_covariance(cov: np.ndarray, weighed_by: np.ndarray, prior_error: float | None,
+                     prior_error_deg: float | None) -> np.ndarray:
+    """The covariance [6, 6] of :func:`fuse_with_prior`'s pose when the fusion weighed the refined pose by the
+    covariance ``weighed_by`` [6, 6] and its error has the covariance ``cov`` [6, 6]: ``K cov K^T + post P post``,
+    with ``P`` the prior's information, ``post = (P + weighed_by^-1)^-1`` and ``K = post weighed_by^-1`` (``post``
+    itself when ``cov`` is ``weighed_by``). prior_error / prior_error_deg: as for :func:`fuse_with_prior`."""
+    info = _prior_information(prior_error, prior_error_deg)
+    w_inv = np.linalg.inv(weighed_by)
+    post = np.linalg.inv(np.diag(info) + w_inv)
+    K = post @ w_inv
+    out = K @ cov @ K.T + post @ np.diag(info) @ post
+    return 0.5 * (out + out.T)
 
 
 def prior_distance(pose: Pose, cov: np.ndarray, prior: Pose) -> float:

@@ -21,6 +21,7 @@ from ..kernels import window, window_grad
 from ..kernels.launch import launcher
 from ..kernels.pose_grad import NXI, derivative_images_kernel
 from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
+from .gradient_noise import gradient_noise
 
 
 class PoseDerivatives:
@@ -106,12 +107,13 @@ class PoseDerivatives:
         return np.concatenate(costs), np.concatenate(grads), np.concatenate(hessians)
 
 
-    def pose_gradient_bands(self, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0),
-                            mask_alpha: float = 0.0, bands: int = 12) -> tuple[np.ndarray, np.ndarray]:
-        """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose`` and its gradient split by image rows into ``bands``
-        horizontal bands of (nearly) equal height [bands, 6] (float64; the bands sum to the whole gradient), from one
-        derivative pass against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] (slot 0); what the pose's
-        cluster-robust covariance needs (``refine/uncertainty.py``)."""
+    def pose_gradient_noise(self, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0),
+                            mask_alpha: float = 0.0, bands: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The cs cost's Gauss-Newton Hessian [6, 6] at ``pose``, its gradient split by image rows into ``bands``
+        horizontal bands of (nearly) equal height [bands, 6] (the bands sum to the whole gradient) and the
+        gradient's covariance [6, 6] under independent noise in the query's pixels (``render/gradient_noise.py``),
+        float64, from one derivative pass against the query statistics ``qstats`` [Q, H, W, 3, window.NQ] (slot 0):
+        what the pose's two covariances need (``refine/uncertainty.py``)."""
         if len(qstats.shape) != 5 or tuple(qstats.shape[1:3]) != (camera.height, camera.width):
             raise ValueError(f"query statistics are {tuple(qstats.shape)}, camera needs (Q, {camera.height}, "
                              f"{camera.width}, 3, {window.NQ})")
@@ -130,4 +132,7 @@ class PoseDerivatives:
         hess[iu] = sys[:window_grad.NH]
         hess = (hess + np.triu(hess, 1).T) * scale
         rows = w.rows.to_numpy()[0, :camera.height, 0, window_grad.ROW_SYS + window_grad.NH:].astype(np.float64)
-        return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale
+        h, wd = camera.height, camera.width
+        noise = gradient_noise(read_rows(g.rgb, 1)[0], read_rows(g.alpha, 1)[0],
+                               read_rows(g.drgb, 1).reshape(h, wd, 3, NXI), read_rows(qstats, 1)[0], mask_alpha)
+        return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale, noise

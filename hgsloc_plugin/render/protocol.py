@@ -64,9 +64,10 @@ class RendererLike(Protocol):
                       mask_alpha: float = 0.0, query_index=None):
         """cs cost [B], gradient [B, 6], Gauss-Newton Hessian [B, 6, 6] in ``xi = (w, v)`` (float64)."""
 
-    def pose_gradient_bands(self, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0),
+    def pose_gradient_noise(self, camera: Camera, pose: Pose, qstats, background=(0.0, 0.0, 0.0),
                             mask_alpha: float = 0.0, bands: int = 12):
-        """cs Gauss-Newton Hessian [6, 6] at ``pose`` and the gradient per horizontal band of rows [bands, 6]."""
+        """cs Gauss-Newton Hessian [6, 6] at ``pose``, the gradient per horizontal band of rows [bands, 6] and the
+        gradient's covariance [6, 6] under independent noise in the query's pixels (``render/gradient_noise.py``)."""
 
     def working_set(self, cameras: Sequence[Camera], pose: Pose, max_shift: float,
                     max_rotation_deg: float) -> RendererLike:

@@ -383,7 +383,7 @@ class Renderer(PoseDerivatives):
         """The ``cs`` cost of each pose, its gradient and its Gauss-Newton Hessian in ``xi = (w, v)``: cost [B],
         grad [B, 6], JtJ [B, 6, 6] (float64); no image leaves the device. ``qstats``, ``query_index``: as for
         :meth:`window_cost`; the cost equals :meth:`window_cost`'s ``1 - mean``. (``render_derivatives`` and
-        ``pose_gradient_bands`` are ``PoseDerivatives``'.)"""
+        ``pose_gradient_noise`` are ``PoseDerivatives``'.)"""
         _check_query_size(qstats, camera)
         return self.cs_gradient(camera, poses, qstats, background, mask_alpha, query_index)
 

@@ -116,8 +116,8 @@ class WorkingSet:
     def pose_gradient(self, camera: Camera, poses: list[Pose], *args, **kwargs):
         return self.covering(poses, camera).pose_gradient(camera, poses, *args, **kwargs)
 
-    def pose_gradient_bands(self, camera: Camera, pose: Pose, *args, **kwargs):
-        return self.covering([pose], camera).pose_gradient_bands(camera, pose, *args, **kwargs)
+    def pose_gradient_noise(self, camera: Camera, pose: Pose, *args, **kwargs):
+        return self.covering([pose], camera).pose_gradient_noise(camera, pose, *args, **kwargs)
 
     def render_full(self, camera: Camera, poses: list[Pose], *args, **kwargs):
         return self.covering(poses, camera).render_full(camera, poses, *args, **kwargs)

@@ -17,7 +17,7 @@ import torch
 from hgsloc_plugin.kernels import RasterConfig
 from hgsloc_plugin.kernels.layout import Stat
 
-from .render_torch import cs_system, render_reference, window_cost
+from .render_torch import cs_gradient_noise, cs_system, render_reference, window_cost
 
 
 def _cameras(camera, n: int) -> list:
@@ -144,10 +144,13 @@ class TorchRenderer:
             hessians.append(H)
         return np.array(costs), np.array(grads), np.array(hessians)
 
-    def pose_gradient_bands(self, camera, pose, qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
+    def pose_gradient_noise(self, camera, pose, qstats, background=(0.0, 0.0, 0.0), mask_alpha: float = 0.0,
                             bands: int = 12):
-        """The Gauss-Newton Hessian [6, 6] and the gradient per horizontal band of rows [bands, 6]."""
-        self.calls["pose_gradient_bands"] += 1
-        _, per_pixel, H = self._cs_system(camera, pose, qstats[0], background, mask_alpha)
+        """The Gauss-Newton Hessian [6, 6], the gradient per horizontal band of rows [bands, 6] and the gradient's
+        covariance [6, 6] under independent pixel noise of the query (``render_torch.cs_gradient_noise``)."""
+        self.calls["pose_gradient_noise"] += 1
+        r, a, J = self._derivatives(camera, pose, background)
+        _, per_pixel, H = cs_system(r, qstats[0], J, a >= mask_alpha)
         rows = per_pixel.sum(axis=1)
-        return H, np.array([band.sum(0) for band in np.array_split(rows, bands)])
+        return (0.5 * (H + H.T), np.array([band.sum(0) for band in np.array_split(rows, bands)]),
+                cs_gradient_noise(r, qstats[0], J, a >= mask_alpha))

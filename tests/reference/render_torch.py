@@ -204,3 +204,30 @@ def cs_system(r: np.ndarray, q: np.ndarray, J: np.ndarray, valid: np.ndarray) ->
         (hv,) = torch.autograd.grad((dgn * Jt[..., i]).sum(), rt, retain_graph=True)
         H[i] = torch.einsum("hwc,hwck->k", hv, Jt).numpy()
     return float(cost.detach()), per_pixel, H
+
+
+def cs_gradient_noise(r: np.ndarray, q: np.ndarray, J: np.ndarray, valid: np.ndarray, sigma: float = 1.5,
+                      radius: int = 5) -> np.ndarray:
+    """Twin of render/gradient_noise.py: the cs gradient's covariance [6, 6] under independent noise in the query
+    q [H, W, 3], at the rendering r [H, W, 3] with derivative images J [H, W, 3, 6] over the ``valid`` pixels
+    [H, W]. The influence of q on the gradient of ``1 - mean(window_map)`` with cs's denominator held
+    (``gn_weight`` = 1 / D) comes from automatic differentiation twice (d/dq of d/dr, times J); each pixel's noise
+    variance is its windowed residual squared over E[e^2] / s^2 of the 2-D window; all float64."""
+    valid_t = torch.from_numpy(np.asarray(valid, bool))
+    n = max(float(valid_t.sum()), 1.0)
+    rt = torch.from_numpy(np.asarray(r, np.float64)).requires_grad_(True)
+    qt = torch.from_numpy(np.asarray(q, np.float64)).requires_grad_(True)
+    Jt = torch.from_numpy(np.asarray(J, np.float64))
+    with torch.no_grad():
+        mr, mq, s_rr, s_qq, _ = _window_stats(rt, qt, sigma, radius)
+    cost = 1 - window_map(rt, qt, gn_weight=1.0 / (s_rr + s_qq + C2))[valid_t].sum() / n
+    (dr,) = torch.autograd.grad(cost, rt, create_graph=True)
+    grad = torch.einsum("hwc,hwck->k", dr, Jt)
+    influence = torch.stack([torch.autograd.grad(grad[i], qt, retain_graph=True)[0] for i in range(6)], -1)
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    factor = 1 - 2 * g[radius] ** 2 + (g * g).sum() ** 2
+    e = (rt.detach() - qt.detach()) - (mr - mq)[0].permute(1, 2, 0)
+    weighted = (influence * e[..., None] / torch.sqrt(factor)).reshape(-1, 6)
+    return (weighted.T @ weighted).numpy()

@@ -6,7 +6,7 @@ On the room (a perfect map: its queries are reference renders of it, so the trut
 photographed ``--seeds`` times: the same rendering, a new draw of the degradation each time (``noise``: pixel noise
 alone, standard deviation 0.015; ``photo``: the trials' gain, gamma, blur, occluder and noise, ``trials.Views``),
 each refined from its own prior 0.5 % of the depth / 0.3 deg off, with the map's floor set to nothing (1e-7 of
-the depth, 1e-6 deg), so that sigma is the image's evidence alone (the band sandwich, ``refine/uncertainty.py``).
+the depth, 1e-6 deg), so that sigma is the image's part alone (the pixel noise, ``refine/uncertainty.py``).
 Per view and degradation: the accepted poses' camera-centre offsets from the truth (cm-eq: the depth scaled to
 2 m) as their mean's length (the bias), their root-mean-square spread about it and about the truth (the error),
 the median ``sigma_t`` and its ratio to that error (1 for a sigma that is the error's standard deviation, 3-D);

@@ -24,6 +24,13 @@ from .buffers import DerivativeWorkspace, WindowGradBuffers, read_rows
 from .gradient_noise import gradient_noise
 
 
+def _read_images(g: DerivativeWorkspace, n: int, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first ``n`` poses' colour [n, H, W, 3], alpha [n, H, W] and d colour / d xi [n, H, W, 3, 6] of a
+    derivative pass at ``camera``'s size, read back to the host (float32)."""
+    return (read_rows(g.rgb, n), read_rows(g.alpha, n),
+            read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
+
+
 class PoseDerivatives:
     """The renderer's pose-derivative methods (``Renderer`` inherits them); ``self`` is the renderer."""
 
@@ -75,9 +82,10 @@ class PoseDerivatives:
             g = self.derivative_images(cams, part, background)
             n = len(part)
             camera = cams[0]
-            rgbs.append(read_rows(g.rgb, n))
-            alphas.append(read_rows(g.alpha, n))
-            ders.append(read_rows(g.drgb, n).reshape(n, camera.height, camera.width, 3, NXI))
+            rgb, alpha, der = _read_images(g, n, camera)
+            rgbs.append(rgb)
+            alphas.append(alpha)
+            ders.append(der)
         return np.concatenate(rgbs), np.concatenate(alphas), np.concatenate(ders)
 
 
@@ -132,7 +140,6 @@ class PoseDerivatives:
         hess[iu] = sys[:window_grad.NH]
         hess = (hess + np.triu(hess, 1).T) * scale
         rows = w.rows.to_numpy()[0, :camera.height, 0, window_grad.ROW_SYS + window_grad.NH:].astype(np.float64)
-        h, wd = camera.height, camera.width
-        noise = gradient_noise(read_rows(g.rgb, 1)[0], read_rows(g.alpha, 1)[0],
-                               read_rows(g.drgb, 1).reshape(h, wd, 3, NXI), read_rows(qstats, 1)[0], mask_alpha)
+        rgb, alpha, der = _read_images(g, 1, camera)
+        noise = gradient_noise(rgb[0], alpha[0], der[0], read_rows(qstats, 1)[0], mask_alpha)
         return hess, np.array([b.sum(0) for b in np.array_split(rows, bands)]) * scale, noise

@@ -34,8 +34,11 @@ NOISE_FACTOR = 1.0 - 2.0 * _TAPS[RADIUS] ** 2 + sum(t * t for t in _TAPS) ** 2
 def _taps(pad: np.ndarray, n: int) -> np.ndarray:
     """``sum_j taps[j] pad[j:j + n]`` along axis 0, the symmetric taps paired."""
     out = _TAPS[RADIUS] * pad[RADIUS:RADIUS + n]
+    pair = np.empty_like(out)  # one buffer for every pair: no temporaries per tap
     for j in range(RADIUS):
-        out += _TAPS[j] * (pad[j:j + n] + pad[2 * RADIUS - j:2 * RADIUS - j + n])
+        np.add(pad[j:j + n], pad[2 * RADIUS - j:2 * RADIUS - j + n], out=pair)
+        pair *= _TAPS[j]
+        out += pair
     return out
 
 

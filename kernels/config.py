@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+#: the variance (pixels^2 of the smaller image) of the triangle filter of an antialiased bilinear reduction
+#: (``core/image.resize_image``, Pillow's, support one output pixel): its weights' variance over the input samples,
+#: averaged over their phase, is 1/6 at every reduction factor above 1
+RESIZE_FILTER_PX2 = 1.0 / 6.0
+
 #: the per-pixel derivative blend's tile edge (``RasterConfig.grad_tile_size`` None): 64 pixels, one bit each in a
 #: ``pose_grad.pixel_masks`` entry
 PIXEL_GRAD_TILE = 8
@@ -85,6 +90,16 @@ class RasterConfig:
         if self.grad_tile_size is not None:
             return self.grad_tile_size
         return self.tile_size if cpu_tiles else PIXEL_GRAD_TILE
+
+    def widening(self, downsample: float = 1.0) -> tuple[float, float]:
+        """(dilation, filter), pixels^2 added to a projected covariance's diagonal for a camera whose image is a
+        finer one's reduced ``downsample`` times per axis (``Camera.downsample``, >= 1): the dilation ``eps2d``
+        of the finer pixels, ``eps2d / downsample^2`` in these, and the reduction's filter
+        (``RESIZE_FILTER_PX2``, 0 at 1), which the projection adds with its opacity compensation
+        (``projection.py``). At 1: ``(eps2d, 0)``, the 3DGS rendering."""
+        if downsample == 1.0:
+            return self.eps2d, 0.0
+        return self.eps2d / (downsample * downsample), RESIZE_FILTER_PX2
 
     def for_layout(self, cpu_tiles: bool) -> RasterConfig:
         """This config with ``grad_tile_size`` set to :meth:`grad_tile` (what the kernels read)."""

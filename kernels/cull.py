@@ -7,9 +7,10 @@ test is conservative (it never drops a Gaussian that some pose of the region wou
 bounds the projection kernel itself obeys:
 
 - the projection culls a Gaussian whose box ``[mx - rx, mx + rx]`` misses the image. With the Jacobian's
-  off-axis term clamped to ``L`` (``projection.py``) and the 2D covariance ``J Sc J^T + eps2d I``, the box
+  off-axis term clamped to ``L`` (``projection.py``) and the 2D covariance ``J Sc J^T + w I`` (``w``: the
+  camera's widening, ``eps2d`` or more: ``RasterConfig.widening``), the box
   half-extent in normalised image units is at most ``A / z + B`` with ``A = 3.33 sqrt(2 + Lx^2 + Ly^2) s_max``
-  (``s_max``: the largest scale; 3.33 bounds both radius modes) and ``B = (3.33 sqrt(2 eps2d + 0.32) + 1) / f``
+  (``s_max``: the largest scale; 3.33 bounds both radius modes) and ``B = (3.33 sqrt(2 w + 0.32) + 1) / f``
   (dilation and the ceil to whole pixels). Multiplied by ``z > 0``, "the box reaches the image's right
   edge x/z <= X" becomes the linear condition ``(X + B) z - x >= -A`` on the camera-frame centre, i.e. the
   centre lies at most ``A / |n|`` outside a plane through the camera centre with normal
@@ -56,9 +57,11 @@ def extent_coefficient(lim_x: float, lim_y: float) -> float:
     return 3.33 * math.sqrt(2.0 + lim_x * lim_x + lim_y * lim_y) * EXTENT_SLACK
 
 
-def extent_pixels(config: RasterConfig) -> float:
-    """``B * f``: the box half-extent's constant term in pixels (dilation, ceil to whole pixels)."""
-    return (3.33 * math.sqrt(2.0 * config.eps2d + 0.32) + 1.0) * EXTENT_SLACK + 1e-3
+def extent_pixels(config: RasterConfig, downsample: float = 1.0) -> float:
+    """``B * f``: the box half-extent's constant term in pixels (the widening of a camera of ``downsample``,
+    ``RasterConfig.widening``, at least ``eps2d``; ceil to whole pixels)."""
+    widen = max(config.eps2d, sum(config.widening(downsample)))
+    return (3.33 * math.sqrt(2.0 * widen + 0.32) + 1.0) * EXTENT_SLACK + 1e-3
 
 
 @functools.cache
@@ -156,8 +159,9 @@ def gather_kernel(ndim: int):
 
 def planes(cameras, config: RasterConfig) -> tuple[list[list[float]], list[float]]:
     """The five planes of :func:`keep_kernel` for every camera (``width``, ``height``, ``fx``, ``fy``, ``cx``,
-    ``cy``) the search renders with: the union of their image bounds in normalised coordinates, their largest
-    Jacobian clamps (as ``projection.py`` computes them) and their smallest focal length.
+    ``cy``, ``downsample``) the search renders with: the union of their image bounds in normalised coordinates,
+    their largest Jacobian clamps (as ``projection.py`` computes them), their smallest focal length and their
+    widest widening.
 
     Returns:
         (planes [5][4]: unit normal and constant offset, a_factor [5]: offset per unit of ``smax``).
@@ -168,7 +172,7 @@ def planes(cameras, config: RasterConfig) -> tuple[list[list[float]], list[float
     y1 = max((c.height - c.cy) / c.fy for c in cameras)
     lims = [jacobian_limits(c) for c in cameras]
     lx, ly = max(v[0] for v in lims), max(v[1] for v in lims)
-    b = extent_pixels(config) / min(min(c.fx, c.fy) for c in cameras)
+    b = max(extent_pixels(config, c.downsample) for c in cameras) / min(min(c.fx, c.fy) for c in cameras)
     a = extent_coefficient(lx, ly)
     rows, fac = [], []
     for n in ((-1.0, 0.0, x1 + b), (1.0, 0.0, -(x0 - b)), (0.0, -1.0, y1 + b), (0.0, 1.0, -(y0 - b))):

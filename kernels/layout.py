@@ -41,7 +41,9 @@ class Cam:
     X_HI = 11
     Y_LO = 12
     Y_HI = 13
-    SIZE = 14
+    DILATION = 14  # pixels^2 added to the projected covariance's diagonal (``RasterConfig.widening``)
+    FILTER = 15  # pixels^2 added after it, the opacity compensated (0: none)
+    SIZE = 16
 
 
 class Stat:

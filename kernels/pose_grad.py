@@ -13,7 +13,8 @@ same poses (they read its ``packed`` records, ``ntiles`` and tile lists):
   (a, b, c) along the six axes: ``dpacked [B, N, 5 * 6]`` (quantity-major, ``DX, DY, DCA, DCB, DCC``).
   The chain: ``dp_c = w x p_c + v``; mean ``m = f p/z + c``; camera covariance ``Sc = R S R^T`` turns with the
   rotation, ``dSc = [w]x Sc - Sc [w]x``; the projection Jacobian ``J(p_c)`` with the same clamp of the off-axis
-  term as the forward pass (a clamped coordinate follows z only); ``cov2 = J Sc J^T + eps2d I``, so with
+  term as the forward pass (a clamped coordinate follows z only); ``cov2 = J Sc J^T + e I`` (``e``: the camera's
+  dilation and filter, ``RasterConfig.widening``; a filter's opacity compensation is held fixed), so with
   ``JS = J Sc`` and ``N = dJ + J [w]x``, ``dcov2 = N JS^T + JS N^T`` (2 x 3 products per axis, no 3 x 3 ones);
   conic ``Q = cov2^-1``, ``dQ = -Q dcov2 Q``. The SH colour's view direction is held fixed (it changes with the
   camera centre only; measured in ``tests/test_pose_grad.py``: 1.6-2.7 % (relative L2) of the translation
@@ -95,7 +96,6 @@ def projection_grad_func(config: RasterConfig):
         culled, skipped);
         output: dpacked [B, N, NDER].
     """
-    eps2d = config.eps2d
 
     @ti.func
     def projection_grad(
@@ -125,9 +125,10 @@ def projection_grad_func(config: RasterConfig):
             tx = z * ux
             ty = z * vy
             cov2 = J @ Sc @ J.transpose()
-            c00 = cov2[0, 0] + eps2d
+            widen = cams[b, Cam.DILATION] + cams[b, Cam.FILTER]
+            c00 = cov2[0, 0] + widen
             c01 = cov2[0, 1]
-            c11 = cov2[1, 1] + eps2d
+            c11 = cov2[1, 1] + widen
             inv_det = 1.0 / (c00 * c11 - c01 * c01)
             Q = ti.Matrix([[c11 * inv_det, -c01 * inv_det], [-c01 * inv_det, c00 * inv_det]])
             JS = J @ Sc  # cov2 = JS J^T

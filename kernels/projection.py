@@ -29,10 +29,13 @@ def jacobian_clamps(fx, fy, cx, cy, wf, hf):
 
 @ti.func
 def camera_records(intrin: ti.template(), extent: ti.template(), wf, hf, num_poses, cams: ti.template()):
-    """Each pose's camera record cams [B, Cam.SIZE] (``layout.Cam``) from its intrinsics intrin [B, 4] (fx, fy,
-    cx, cy) and extent coefficients extent [B, 2], for images of wf x hf pixels (one loop: a task of its own)."""
+    """Each pose's camera record cams [B, Cam.SIZE] (``layout.Cam``) from its intrinsics intrin [B, 6] (fx, fy,
+    cx, cy, then the widening's dilation and filter: ``RasterConfig.widening``) and extent coefficients extent
+    [B, 2], for images of wf x hf pixels (one loop: a task of its own)."""
     for b in range(num_poses):
         fx, fy, cx, cy = intrin[b, 0], intrin[b, 1], intrin[b, 2], intrin[b, 3]
+        cams[b, Cam.DILATION] = intrin[b, 4]
+        cams[b, Cam.FILTER] = intrin[b, 5]
         lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = jacobian_clamps(fx, fy, cx, cy, wf, hf)
         cams[b, Cam.FX] = fx
         cams[b, Cam.FY] = fy
@@ -83,18 +86,22 @@ def clamped_jacobian(p_c, fx, fy, lx_pos, lx_neg, ly_pos, ly_neg):
 
 
 @functools.cache
-def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse_tiles: bool):
+def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse_tiles: bool, filtered: bool = False):
     """Compiled projection kernel for one config and SH degree; ``ellipse_tiles``: bin each Gaussian into the
     tiles its alpha ellipse reaches (else its whole box; ``footprint.uses_ellipse_tiles``); ``count``: it also
     sums each pose's tile intersections into ``totals`` [B] int64 (``tile_sort.count_tiles``, for the serial
     sort; a host array: they come back with the launch), else ``totals`` is not touched. Each pose has its own
     camera (one image size): one launch renders the poses of queries of other intrinsics as their own launches
-    would, bit for bit.
+    would, bit for bit. ``filtered``: the variant for cameras of reduced images (a record's ``Cam.FILTER`` > 0),
+    which scales each opacity by ``sqrt(det(cov2 + dilation) / det(cov2 + dilation + filter))``, the footprint's
+    integral kept (gsplat's "antialiased" mode, with the finer image's dilation); the plain variant adds the
+    widening only, in 3DGS's arithmetic operation for operation (``Renderer`` picks the variant per call).
 
     Kernel arguments:
         means [N, 3], cov3d [N, 6] (xx, xy, xz, yy, yz, zz), opacities [N], sh [N, K, 3], smax [N] (largest
         scale), viewmats [B, 4, 4] (rows 0-2: world-to-camera [R | t]; row 3: the camera centre, then 0: one
-        upload per call), intrin [B, 4] (each pose's fx, fy, cx, cy), width, height (one image size for all),
+        upload per call), intrin [B, 6] (each pose's fx, fy, cx, cy, dilation, filter: ``camera_records``), width,
+        height (one image size for all),
         tile (tile edge in pixels: the renders' or the derivative pass's), num_poses, extent [B, 2]
         (``cull.extent_coefficient`` and ``cull.extent_pixels`` / f for each pose's camera: the bound of an
         early, conservative frustum test before the covariance);
@@ -106,7 +113,6 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
     """
     eval_sh = make_sh_func(sh_degree)
     near, far = config.near_plane, config.far_plane
-    eps2d = config.eps2d
     alpha_min = config.alpha_min
     inria = config.radius_mode == "inria"
     log_inv_amin = math.log(1.0 / alpha_min)
@@ -170,12 +176,20 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
                                            cams[b, Cam.LIM_X_NEG], cams[b, Cam.LIM_Y_POS], cams[b, Cam.LIM_Y_NEG])
                 rz = 1.0 / z
                 cov2 = J @ Sc @ J.transpose()
-                c00 = cov2[0, 0] + eps2d
+                widen = cams[b, Cam.DILATION] + cams[b, Cam.FILTER]
+                c00 = cov2[0, 0] + widen
                 c01 = cov2[0, 1]
-                c11 = cov2[1, 1] + eps2d
+                c11 = cov2[1, 1] + widen
                 det = c00 * c11 - c01 * c01
                 if det <= 0.0:
                     continue
+                op_b, lim_b, extend_b = op, lim, extend
+                if ti.static(filtered):  # a reduced image's filter: the footprint widens, its integral stays
+                    d00 = cov2[0, 0] + cams[b, Cam.DILATION]  # without the filter
+                    d11 = cov2[1, 1] + cams[b, Cam.DILATION]
+                    op_b = op * ti.sqrt(ti.max(d00 * d11 - c01 * c01, 0.0) / det)
+                    lim_b = ti.log(ti.max(op_b, 1e-30)) + log_inv_amin
+                    extend_b = ti.min(3.33, ti.sqrt(ti.max(2.0 * lim_b, 0.0)))
                 inv_det = 1.0 / det
                 mx = cams[b, Cam.FX] * p_c[0] * rz + cams[b, Cam.CX]
                 my = cams[b, Cam.FY] * p_c[1] * rz + cams[b, Cam.CY]
@@ -187,10 +201,10 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
                     rx = ti.ceil(3.0 * ti.sqrt(lam))
                     ry = rx
                 else:
-                    if op < alpha_min:
+                    if op_b < alpha_min:
                         continue
-                    rx = ti.ceil(extend * ti.sqrt(c00))
-                    ry = ti.ceil(extend * ti.sqrt(c11))
+                    rx = ti.ceil(extend_b * ti.sqrt(c00))
+                    ry = ti.ceil(extend_b * ti.sqrt(c11))
                 if rx <= 0.0 and ry <= 0.0:
                     continue
                 if mx + rx <= 0.0 or mx - rx >= wf or my + ry <= 0.0 or my - ry >= hf:
@@ -207,7 +221,7 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
                 cc = c00 * inv_det
                 mask = ~ti.u64(0)
                 if ti.static(ellipse_tiles):  # only the box's tiles the alpha ellipse meets (footprint.py)
-                    mask, nt = box_tile_mask(mx, my, ca, cb, cc, lim, x0, y0, x1, y1, tile, width, height)
+                    mask, nt = box_tile_mask(mx, my, ca, cb, cc, lim_b, x0, y0, x1, y1, tile, width, height)
                     if nt == 0:
                         continue
                 depth[b, i] = z
@@ -220,9 +234,9 @@ def projection_kernel(config: RasterConfig, sh_degree: int, count: bool, ellipse
                 packed[b, i, Rec.CA] = ca
                 packed[b, i, Rec.CB] = cb
                 packed[b, i, Rec.CC] = cc
-                packed[b, i, Rec.OPACITY] = op
-                packed[b, i, Rec.LIM] = lim
-                packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim, 0.0) * c11) + 0.01  # y half-extent of that ellipse
+                packed[b, i, Rec.OPACITY] = op_b
+                packed[b, i, Rec.LIM] = lim_b
+                packed[b, i, Rec.RY] = ti.sqrt(ti.max(2.0 * lim_b, 0.0) * c11) + 0.01  # y half-extent of that ellipse
                 for c in ti.static(range(3)):
                     packed[b, i, Rec.RGB + c] = ti.max(rgb[c] + 0.5, 0.0)
                 packed[b, i, Rec.DEPTH] = z

@@ -40,6 +40,10 @@ class Camera:
     Convention: OpenCV axes (x right, y down, z forward); the centre of pixel (row i, col j) is (j + 0.5, i + 0.5).
     A camera with distortion describes a photo, never a rendering: the refiner undistorts such a photo to a pinhole
     camera first (``image.undistort``), and the renderer refuses it.
+
+    ``downsample`` (>= 1): the camera of an image reduced from a finer one by this factor per axis (the query's
+    pyramid): renders average as that reduction does (``RasterConfig.widening``). 1 (the default, and what
+    :meth:`resized` returns): renders as 3DGS renders at its training size.
     """
 
     width: int
@@ -49,6 +53,7 @@ class Camera:
     cx: float
     cy: float
     distortion: Distortion | None = None
+    downsample: float = dataclasses.field(default=1.0, repr=False)  # repr as before: resume keys stay the same
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -63,6 +68,10 @@ class Camera:
             object.__setattr__(self, name, v)
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"Camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        d = float(self.downsample)
+        if not (math.isfinite(d) and d >= 1.0):
+            raise ValueError(f"Camera.downsample must be a finite number >= 1, got {self.downsample!r}")
+        object.__setattr__(self, "downsample", d)
 
     @classmethod
     def from_focal(cls, width: int, height: int, focal: float) -> Camera:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -33,7 +34,8 @@ class Plan:
     Attributes:
         coarse_pose: the prior (world-to-camera).
         cam_final / cam_coarse / cam_polish / cam_wide: the fine levels', the pyramid levels', the polish's and
-            the wide search's cameras.
+            the wide search's cameras (with ``Tuning.antialias``, each smaller than the query image marked as its
+            reduction: :func:`reduced`).
         levels: (rotation step in degrees, translation step in scene units) per search level, coarse to fine.
         depth: the coarse pose's median scene depth (scene units).
         max_shift / max_rotation_deg: the trust region around ``coarse_pose``.
@@ -71,6 +73,13 @@ class Plan:
                    rotation_angle_deg(self.coarse_pose.R, pose.R) / self.max_rotation_deg)
 
 
+def reduced(cam: Camera, full: Camera) -> Camera:
+    """``cam`` (a scoring size of ``full``'s image) marked as that image reduced: ``Camera.downsample`` the mean
+    of the two axes' factors (1: ``full``'s own size)."""
+    factor = 0.5 * (full.width / cam.width + full.height / cam.height)
+    return cam if cam.width >= full.width else dataclasses.replace(cam, downsample=max(1.0, factor))
+
+
 def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse_pose: Pose,
               prior: QueryPrior, step_pixels: tuple[float, ...] | None = None) -> Plan:
     """The plan of one query: ``prior``'s settings first, then ``config``'s, then the automatic trust region
@@ -83,6 +92,9 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
     cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
     cam_polish = camera.with_max_side(cfg.polish_max_side)
     cam_wide = cam_final.with_max_side(cfg.tuning.wide_max_side)
+    if cfg.tuning.antialias:  # each size renders as the query image reduced to it
+        cam_final, cam_coarse, cam_polish, cam_wide = (reduced(c, camera)
+                                                       for c in (cam_final, cam_coarse, cam_polish, cam_wide))
     depth = median_depth(scene, cam_final, coarse_pose)
     if cfg.tuning.neighbourhood == "paper":
         levels = [(cfg.tuning.paper_step_q, cfg.tuning.paper_step_t)]

@@ -141,7 +141,7 @@ class Workspace:
     tile: int
     tiles: tuple[int, int]
     viewmats: ti.Ndarray  # [B, 4, 4]: rows 0-2 world-to-camera [R | t], row 3 the camera centre (then 0)
-    intrin: ti.Ndarray  # [B, 4]: each pose's fx, fy, cx, cy
+    intrin: ti.Ndarray  # [B, 6]: each pose's fx, fy, cx, cy, dilation, filter (``RasterConfig.widening``)
     extent: ti.Ndarray  # [B, 2]: the projection's extent coefficients of each pose's camera
     cams: ti.Ndarray  # [B, Cam.SIZE]: the camera records the projection writes (``kernels.layout.Cam``)
     isect_base: ti.Ndarray  # [B]
@@ -169,7 +169,7 @@ class Workspace:
             raise ValueError(f"image {width}x{height} has too many tiles per axis")
         nd = ti.ndarray
         common = dict(batch=B, tile=tile, tiles=(tx, ty), viewmats=nd(ti.f32, (B, 4, 4)),
-                      intrin=nd(ti.f32, (B, 4)), extent=nd(ti.f32, (B, 2)), cams=nd(ti.f32, (B, Cam.SIZE)),
+                      intrin=nd(ti.f32, (B, 6)), extent=nd(ti.f32, (B, 2)), cams=nd(ti.f32, (B, Cam.SIZE)),
                       isect_base=nd(ti.i64, (B,)),
                       background=nd(ti.f32, (3,)), tile_start=nd(ti.i32, (B, tx * ty + 1)))
         if parallel:

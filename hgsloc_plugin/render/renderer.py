@@ -57,7 +57,9 @@ class Renderer(PoseDerivatives):
         self.pool = Pool()
         self.sort_mode = sort_mode(self.config.sort, arch)
         self.ellipse_tiles = ellipse = uses_ellipse_tiles(self.config, arch)  # RasterConfig.tile_test
-        self._project = launcher(projection_kernel(self.config, self.sh_degree, self.sort_mode == "serial", ellipse))
+        # the projection, and its variant for cameras of reduced images (``Camera.downsample``; compiled on use)
+        self._project, self._project_filtered = (launcher(projection_kernel(
+            self.config, self.sh_degree, self.sort_mode == "serial", ellipse, filtered)) for filtered in (False, True))
         self._sort = launcher(tile_sort_kernel(self.config, ellipse))
         cost, img = (splat.splat_cost_kernel, splat.splat_image_func) if mode == "splat" else (cost_kernel, image_func)
         self._blend_cost, self._blend_image = launcher(cost(self.config)), launcher(image_kernel(img(self.config)))
@@ -224,8 +226,9 @@ class Renderer(PoseDerivatives):
         # every row of the workspace filled (rows past the last pose repeat the first camera), so that calls of
         # one camera with any number of poses upload the same bytes: once per query, not once per batch size
         distinct = list(dict.fromkeys(cams))
-        rows = {c: ([c.fx, c.fy, c.cx, c.cy], [cull.extent_coefficient(*cull.jacobian_limits(c)),
-                                               cull.extent_pixels(self.config) / min(c.fx, c.fy)]) for c in distinct}
+        rows = {c: ([c.fx, c.fy, c.cx, c.cy, *self.config.widening(c.downsample)],
+                    [cull.extent_coefficient(*cull.jacobian_limits(c)),
+                     cull.extent_pixels(self.config, c.downsample) / min(c.fx, c.fy)]) for c in distinct}
         intrin = np.tile(np.array(rows[cams[0]][0], np.float32), (ws.batch, 1))
         extent = np.tile(np.array(rows[cams[0]][1], np.float32), (ws.batch, 1))
         if len(distinct) > 1:
@@ -239,9 +242,9 @@ class Renderer(PoseDerivatives):
         parallel = self.sort_mode == "parallel"
         # the serial sort's totals: counted by the projection into a host array, back with its launch
         totals = self.pool.placeholder(ti.i64) if parallel else np.zeros(B, np.int64)
-        self._project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width,
-                      camera.height, ws.tile, B, ws.extent, ws.cams, rec.depth, rec.rect, rec.ntiles, rec.packed,
-                      totals)
+        project = self._project_filtered if any(c.downsample != 1.0 for c in distinct) else self._project
+        project(g.means, g.cov3d, g.opacities, g.sh, g.smax, ws.viewmats, ws.intrin, camera.width, camera.height,
+                ws.tile, B, ws.extent, ws.cams, rec.depth, rec.rect, rec.ntiles, rec.packed, totals)
         if parallel:
             totals = bin_parallel(rec.depth, rec.rect, rec.ntiles, rec.offsets, B, self.n, tx, tx * ty,
                                   lambda m: self.pool.tile_lists(m, parallel=True), self.pool.radix_scratch(),

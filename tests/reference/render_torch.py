@@ -16,10 +16,15 @@ from gsplat.cuda import _torch_impl as gs
 ALPHA_MIN = 1.0 / 255.0
 
 
-def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e10, tile=16, dtype=torch.float32):
+def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e10, tile=16, dtype=torch.float32,
+            fixed_filter: torch.Tensor | None = None):
     """Project one view. Returns a dict of tensors over the N Gaussians (radius 0 = culled).
 
-    ``dtype``: float32 like the kernels, or float64 (for finite differences of the pose)."""
+    ``dtype``: float32 like the kernels, or float64 (for finite differences of the pose). A camera of a reduced
+    image (``camera.downsample`` r > 1) renders with the dilation ``eps2d / r^2`` and the reduction's triangle
+    filter (variance 1/6 pixel^2) added to the 2D covariance, the opacity times ``sqrt(det(cov2d + dilation) /
+    det(cov2d + dilation + filter))`` (the footprint's integral kept); ``fixed_filter`` [N]: use these factors
+    instead (the derivative pass holds them fixed)."""
     means = torch.from_numpy(scene.means).to(dtype)
     quats = torch.from_numpy(scene.quats).to(dtype)
     scales = torch.from_numpy(scene.scales).to(dtype)
@@ -28,11 +33,20 @@ def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e1
     vm = torch.from_numpy(viewmat_44).to(dtype)[None]
     K = torch.from_numpy(camera.K).to(dtype)[None]
     W, H = camera.width, camera.height
-    _, means2d, depths, conics, _ = gs._fully_fused_projection(means, covars, vm, K, W, H, eps2d=eps2d,
+    r = getattr(camera, "downsample", 1.0)
+    dilation, filt = (eps2d, 0.0) if r == 1.0 else (eps2d / r ** 2, 1.0 / 6.0)
+    _, means2d, depths, conics, _ = gs._fully_fused_projection(means, covars, vm, K, W, H, eps2d=dilation + filt,
                                                                 near_plane=near, far_plane=far)
     means_c, covars_c = gs._world_to_cam(means, covars, vm)
     _, cov2d = gs._persp_proj(means_c, covars_c, K, W, H)
-    cov2d = cov2d[0] + torch.eye(2) * eps2d
+    cov2d = cov2d[0]
+    factor = torch.ones_like(opac)
+    if filt > 0.0:
+        det0 = (cov2d[:, 0, 0] + dilation) * (cov2d[:, 1, 1] + dilation) - cov2d[:, 0, 1] ** 2
+        det1 = (cov2d[:, 0, 0] + dilation + filt) * (cov2d[:, 1, 1] + dilation + filt) - cov2d[:, 0, 1] ** 2
+        factor = torch.sqrt(det0.clamp(min=0) / det1) if fixed_filter is None else fixed_filter.to(dtype)
+        opac = opac * factor
+    cov2d = cov2d + torch.eye(2, dtype=dtype) * (dilation + filt)
     means2d, depths, conics = means2d[0], depths[0], conics[0]
     det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] ** 2
     extend = torch.clamp(torch.sqrt(2.0 * torch.log(torch.clamp(opac, min=1e-30) / ALPHA_MIN).clamp(min=0)),
@@ -53,7 +67,7 @@ def project(scene, camera, viewmat_44: np.ndarray, eps2d=0.3, near=0.01, far=1e1
     y1 = torch.clamp(torch.ceil((means2d[:, 1] + ry) / tile), 0, ty).long()
     valid &= (x1 > x0) & (y1 > y0)
     return dict(means2d=means2d, conics=conics, depths=depths, opac=opac, colors=colors, valid=valid,
-                rect=torch.stack([x0, y0, x1, y1], 1), radius=torch.stack([rx, ry], 1))
+                rect=torch.stack([x0, y0, x1, y1], 1), radius=torch.stack([rx, ry], 1), factor=factor)
 
 
 def bin_tiles(proj, camera, tile=16):
@@ -112,9 +126,10 @@ def blend(proj, lists, camera, background=(0.0, 0.0, 0.0), tile=16, alpha_max=0.
     return rgb, alpha_img
 
 
-def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0), dtype=torch.float32):
-    """Full reference render of one pose: (rgb [H, W, 3], alpha [H, W]) float64 (projection in ``dtype``)."""
-    proj = project(scene, camera, pose.matrix(), dtype=dtype)
+def render_reference(scene, camera, pose, background=(0.0, 0.0, 0.0), dtype=torch.float32, fixed_filter=None):
+    """Full reference render of one pose: (rgb [H, W, 3], alpha [H, W]) float64 (projection in ``dtype``;
+    ``fixed_filter``: as :func:`project`)."""
+    proj = project(scene, camera, pose.matrix(), dtype=dtype, fixed_filter=fixed_filter)
     lists = bin_tiles(proj, camera)
     return blend(proj, lists, camera, background)
 

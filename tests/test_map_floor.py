@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import hgsloc_plugin as hp
-from hgsloc_plugin.core.units import parse_map_floor
+from hgsloc_plugin.core.units import parse_angle, parse_map_floor
 from hgsloc_plugin.evaluation.floor import floor_from_offsets, map_floor
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +45,12 @@ def test_map_floor_flag_and_tuning_fields():
         hp.Tuning(map_floor_depth=-0.1)
     with pytest.raises(ValueError, match="map_floor_deg"):
         hp.Tuning(map_floor_deg=float("nan"))
+    # views whose minima are their poses to the last bit measure 0: the printed flag declares it, as Tuning does
+    zero = floor_from_offsets(np.zeros((2, 2)), ["a", "b"])
+    assert zero.flag() == "0%,0deg" and parse_map_floor(zero.flag()) == zero.tuning()
+    assert hp.Tuning(**parse_map_floor(zero.flag())).map_floor_deg == 0.0
+    with pytest.raises(ValueError, match="--max-rotation"):
+        parse_angle("0deg")  # elsewhere an angle stays > 0
 
 
 def _room_views(n=3):

@@ -30,13 +30,13 @@ _LENGTH_UNITS = {"": 1.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
 _ANGLE_UNITS = {"": 1.0, "deg": 1.0, "rad": 57.29577951308232}
 
 
-def _with_unit(text: str, units: dict[str, float], flag: str) -> float:
+def _with_unit(text: str, units: dict[str, float], flag: str, zero: bool = False) -> float:
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-z]*)\s*", text)
     if not m or m.group(2) not in units:
         raise ValueError(f"{flag}: expected a positive number with an optional unit "
                          f"({', '.join(u for u in units if u)}), got {text!r}")
     v = float(m.group(1)) * units[m.group(2)]
-    if not v > 0:
+    if not (v > 0 or (zero and v == 0)):
         raise ValueError(f"{flag}: must be > 0, got {text!r}")
     return v
 
@@ -51,9 +51,9 @@ def parse_pixels(text: str, flag: str = "--lod-pixels") -> float:
     return _with_unit(text, {"": 1.0, "px": 1.0}, flag)
 
 
-def parse_angle(text: str, flag: str = "--max-rotation") -> float:
-    """'5deg', '5', '0.1rad' -> degrees."""
-    return _with_unit(text, _ANGLE_UNITS, flag)
+def parse_angle(text: str, flag: str = "--max-rotation", zero: bool = False) -> float:
+    """'5deg', '5', '0.1rad' -> degrees (> 0; ``zero``: 0 allowed too)."""
+    return _with_unit(text, _ANGLE_UNITS, flag, zero)
 
 
 def prior_error_overrides(error: str | None, rotation_error: str | None,
@@ -72,8 +72,9 @@ def prior_error_overrides(error: str | None, rotation_error: str | None,
 def parse_map_floor(text: str, flag: str = "--map-floor") -> dict:
     """'0.6%,0.2deg' (the camera-centre floor in % of the query's median depth, the rotation floor in degrees, as
     ``hgsloc check --measure-floor`` prints it) -> the ``Tuning`` fields ``map_floor_depth`` (a fraction) and
-    ``map_floor_deg``; ValueError naming ``flag`` otherwise."""
+    ``map_floor_deg``; ValueError naming ``flag`` otherwise. Zeros are allowed, as ``Tuning`` allows them: views
+    whose minima lie at their poses to the last bit (a map rendering the views themselves) measure a floor of 0."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*%\s*,\s*([^,]+)", text)
     if not m:
         raise ValueError(f"{flag}: expected 'P%,Rdeg' (e.g. '0.6%,0.2deg'), got {text!r}")
-    return {"map_floor_depth": float(m.group(1)) / 100.0, "map_floor_deg": parse_angle(m.group(2), flag)}
+    return {"map_floor_depth": float(m.group(1)) / 100.0, "map_floor_deg": parse_angle(m.group(2), flag, zero=True)}

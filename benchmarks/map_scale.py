@@ -28,10 +28,10 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
   hierarchy (``render/hierarchy.py``, ``Tuning.lod_pixels``), built in the process (its seconds and size are a
   column) and compared per query with the exact path (``vs exact``: the median and largest change of the
   translation error, in % of the query's depth);
-- ``working set + antialias, gradient first``: the exact path with every scoring size below the query image
-  rendered as the image reduced to it (``Tuning.antialias``, ``Camera.downsample``; opt-in), compared with the
-  exact path the same way; ``working set + LOD 1 / 2 px + antialias, gradient first``: a cut of the hierarchy so
-  rendered, compared with the antialiased exact path.
+- ``working set, gradient first, plain renders``: the exact path with every scoring size rendered as 3DGS renders
+  at its training size (``Tuning.antialias=False``; the default until 2026-12-07: each size below the query image
+  renders as the image reduced to it, ``Camera.downsample``), compared with the default exact path;
+  ``working set + LOD 2 px, gradient first, plain renders``: the cut so rendered, compared with the plain path.
 
 Before the timed queries, each process refines the first query once untimed (kernel compilation or loading
 from Taichi's offline cache, once per process; its time is printed as "warm-up").
@@ -72,10 +72,9 @@ PATHS = {
     "working set + coarse LOD, gradient first": dict(working_set=True, routes="gradient_first", coarse_lod_pixels=2.0),
     **{f"working set + LOD {px} px, gradient first": dict(working_set=True, routes="gradient_first",
                                                           lod_pixels=float(px)) for px in (1, 2, 3, 4)},
-    "working set + antialias, gradient first": dict(working_set=True, routes="gradient_first", antialias=True),
-    **{f"working set + LOD {px} px + antialias, gradient first": dict(working_set=True, routes="gradient_first",
-                                                                     lod_pixels=float(px), antialias=True)
-       for px in (1, 2)},
+    "working set, gradient first, plain renders": dict(working_set=True, routes="gradient_first", antialias=False),
+    "working set + LOD 2 px, gradient first, plain renders": dict(working_set=True, routes="gradient_first",
+                                                                 lod_pixels=2.0, antialias=False),
 }
 #: the exact path with every prior's centre moved by this fraction of its depth (a seeded direction per query): its
 #: ``vs exact`` is how much the refined pose moves for a change of the start far below anything a map could show,
@@ -85,9 +84,8 @@ PATHS |= {path: PATHS["working set, gradient first"] for path in NUDGED}
 #: the exact path each level-of-detail (or nudged) path's accuracy is compared with
 EXACT = {path: "working set, gradient first"
          for path in [f"working set + LOD {px} px, gradient first" for px in (1, 2, 3, 4)] + list(NUDGED)
-         + ["working set + antialias, gradient first"]}
-EXACT |= {f"working set + LOD {px} px + antialias, gradient first": "working set + antialias, gradient first"
-          for px in (1, 2)}
+         + ["working set, gradient first, plain renders"]}
+EXACT["working set + LOD 2 px, gradient first, plain renders"] = "working set, gradient first, plain renders"
 MAPS = ("split", "jitter", "snow_sharp")
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 

@@ -115,9 +115,10 @@ def test_plan_marks_each_scoring_size_below_the_image_as_its_reduction(antialias
     camera = hp.Camera.from_fov(640, 480, 60.0)
     cfg = hp.RefineConfig.preset("default", antialias=antialias)
     plan = make_plan(cfg, scene, camera, hp.Pose.identity(), QueryPrior())
-    for cam in (plan.cam_final, plan.cam_coarse, plan.cam_polish, plan.cam_wide):
+    for cam in (plan.cam_final, plan.cam_coarse, plan.cam_polish):
         assert cam.width < camera.width
         want = 0.5 * (camera.width / cam.width + camera.height / cam.height) if antialias else 1.0
         assert cam.downsample == pytest.approx(want), (cam.width, cam.downsample)
+    assert plan.cam_wide.width < camera.width and plan.cam_wide.downsample == 1.0  # its lattice's renders stay plain
     same = make_plan(cfg, scene, camera.resized(320, 240), hp.Pose.identity(), QueryPrior())
     assert same.cam_polish.width == 320 and same.cam_polish.downsample == 1.0  # the image's size: 3DGS's rendering

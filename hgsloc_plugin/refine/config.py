@@ -43,9 +43,9 @@ class Tuning:
             (``render/hierarchy.py``, built once per map and cached), one per image size, merging cells of up to
             this many pixels at that size; approximate (on real photos 1 px moved poses 0.002 % of the depth, 2 px
             0.02 %: ``benchmarks/map_scale.md``); with a working set only; None: the exact map.
-        antialias: every scoring size below the query image's renders as the image reduced to it
-            (``Camera.downsample``: the 3DGS dilation scaled, the reduction's filter with its opacity compensation;
-            ``benchmarks/map_scale.md``); off: every size renders as 3DGS renders at its training size.
+        antialias: every scoring size below the query image's (the wide search's excepted) renders as the image
+            reduced to it (``Camera.downsample``: the 3DGS dilation scaled, the reduction's filter with its opacity
+            compensation; ``benchmarks/defaults.md``); off: every size renders as 3DGS renders at its training size.
         polish_iterations: the polish's derivative passes at most.
         wide_step_pixels: image motion (pixels at the final scoring size) of the wide search's lattice levels,
             run only when the search's pose is refused (priors 30-100 px of image motion off), with the automatic
@@ -85,7 +85,7 @@ class Tuning:
     working_set_pixels: float = 8.0
     coarse_lod_pixels: float | None = None
     lod_pixels: float | None = None
-    antialias: bool = False
+    antialias: bool = True
     polish_iterations: int = 16
     wide_step_pixels: tuple[float, ...] = (16.0, 8.0)
     wide_max_side: int = 32

@@ -34,8 +34,8 @@ class Plan:
     Attributes:
         coarse_pose: the prior (world-to-camera).
         cam_final / cam_coarse / cam_polish / cam_wide: the fine levels', the pyramid levels', the polish's and
-            the wide search's cameras (with ``Tuning.antialias``, each smaller than the query image marked as its
-            reduction: :func:`reduced`).
+            the wide search's cameras (with ``Tuning.antialias``, the first three, where smaller than the query
+            image, marked as its reduction: :func:`reduced`).
         levels: (rotation step in degrees, translation step in scene units) per search level, coarse to fine.
         depth: the coarse pose's median scene depth (scene units).
         max_shift / max_rotation_deg: the trust region around ``coarse_pose``.
@@ -92,9 +92,9 @@ def make_plan(config: RefineConfig, scene: GaussianScene, camera: Camera, coarse
     cam_coarse = cam_final.with_max_side(int(round(coarse_side)))
     cam_polish = camera.with_max_side(cfg.polish_max_side)
     cam_wide = cam_final.with_max_side(cfg.tuning.wide_max_side)
-    if cfg.tuning.antialias:  # each size renders as the query image reduced to it
-        cam_final, cam_coarse, cam_polish, cam_wide = (reduced(c, camera)
-                                                       for c in (cam_final, cam_coarse, cam_polish, cam_wide))
+    if cfg.tuning.antialias:  # each scoring size renders as the query image reduced to it; the wide search's
+        # lattice (``wide_step_pixels``) was tuned on plain renders and keeps them
+        cam_final, cam_coarse, cam_polish = (reduced(c, camera) for c in (cam_final, cam_coarse, cam_polish))
     depth = median_depth(scene, cam_final, coarse_pose)
     if cfg.tuning.neighbourhood == "paper":
         levels = [(cfg.tuning.paper_step_q, cfg.tuning.paper_step_t)]

@@ -334,8 +334,7 @@ def test_refine_reports_polish_and_gradient_preset():
 def test_gradient_first_falls_back_to_the_search_and_skips_it_at_a_settled_prior():
     """gradient_first: a prior beyond the gradient's reach (29 cm / 9.5 deg in the room) is refused on the gradient
     route and found by the search; a prior at the truth sits in a sharp, aligned minimum: no search is run.
-    (Since the reduced-image renders became the default, the 32 cm / 10.5 deg prior this test used is found by the
-    wide search instead: its search's coarse levels stop in another basin; both end at the truth.)"""
+    (Why this prior: ``benchmarks/defaults.md``, ``antialias``.)"""
     from hgsloc_plugin.refine.trust import settled
 
     scene = make_room_scene()

@@ -95,6 +95,9 @@ INTERRUPT_AFTER_FIRST = """
 import os, signal, sys
 import hgsloc_plugin.run.pipeline as pipeline
 from hgsloc_plugin.cli import main
+# a shell runs a background job's children with SIGINT ignored (a suite run as `pytest ... &`); a user's terminal
+# delivers it: Python's own handler, which raises KeyboardInterrupt
+signal.signal(signal.SIGINT, signal.default_int_handler)
 real = pipeline.run_batch
 def run_batch(*args, on_result, **kw):
     def first(q, res):

@@ -1,10 +1,10 @@
 """Refiner: refine one coarse camera pose on a 3DGS map.
 
-``Refiner.refine`` reads top to bottom: plan (``plan.py``) -> gradient route -> (search route) -> (wide search
-route) (``routes.py``), each judged by the acceptance rule (``trust.judge``) -> result (``result.py``). Where the
-gradient route and the search agree (one minimum), the search's pose is judged again: without the alignment test
-when both were refused for weak alignment only, in the wide search's region when both were cut off by their own
-trust region's edge.
+``Refiner.refine`` reads top to bottom: plan (``plan.py``) -> gradient route (-> wide gradient route when it
+travelled far) -> (search route) -> (wide search route) (``routes.py``), each judged by the acceptance rule
+(``trust.judge``) -> result (``result.py``). Where the gradient route and the search agree (one minimum), the
+search's pose is judged again: without the alignment test when both were refused for weak alignment only, in the
+wide search's region when both were cut off by their own trust region's edge.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan, make_plan
 from .result import RefineResult
-from .routes import Candidate, QueryContext, gradient_route, search_route, wide_search_route
+from .routes import Candidate, QueryContext, gradient_route, search_route, wide_gradient_route, wide_search_route
 from .scorer import Scorer
 from .trust import TRUST_REGION_EDGE, WEAK_ALIGNMENT, Verdict, judge
 
@@ -114,9 +114,9 @@ class Refiner:
             if not tried[-1][1].ends_refinement():
                 logger.debug("query %s: gradient route rejected (%s); searching", name, tried[-1][1].rejected)
             elif tried[-1][1].accepted and _beyond_reach(plan, tried[-1][0]):
-                logger.debug("query %s: the gradient route travelled beyond a window's reach; the search checks it",
-                             name)
-                tried = _lower_cost_last([tried[-1], self._judged(ctx, search_route(ctx))])
+                logger.debug("query %s: the gradient route travelled beyond a window's reach; the polish from the "
+                             "wide search's size checks it", name)
+                tried = _lower_cost_last([tried[-1], self._judged(ctx, wide_gradient_route(ctx))])
         if not tried or not tried[-1][1].ends_refinement():
             tried.append(self._judged(ctx, main_route(ctx)))
             if _agree_but_weakly_aligned(tried, plan, cfg.tuning.same_minimum_pixels):
@@ -199,7 +199,8 @@ def _beyond_reach(plan: Plan, cand: Candidate) -> bool:
     """Whether the gradient route moved its pose further from the prior than the cs cost's window reaches at the
     route's coarsest size (``kernels.window.RADIUS`` pixels there): beyond that the descent followed structure
     no window saw whole, where a periodic texture or the rotation / translation ambiguity can hold it in a wrong
-    minimum, so the search is run from the prior as a second hypothesis (``_lower_cost_last``)."""
+    minimum, so the polish from the prior started at the wide search's size (``routes.wide_gradient_route``,
+    where such texture is blurred away) runs as a second hypothesis (``_lower_cost_last``)."""
     coarse_px = plan.pixels_apart(plan.coarse_pose, cand.pose) * plan.cam_coarse.fx / plan.cam_final.fx
     return coarse_px > WINDOW_RADIUS
 

@@ -43,11 +43,11 @@ class RefineResult:
         expansions / renders: search expansions and plain renders (the polish's line search included);
             levels: per-level details; history: best cost after each expansion; seconds: wall time.
         working_set / working_set_selections: Gaussians rendered (the largest selection) and selections made.
-        route: "gradient" (the polish alone from the coarse pose), "search" (lattice search + polish) or "wide
-            search" (``Tuning.wide_step_pixels``, after a refused search): the route of the returned
-            candidate (a gradient pose that travelled beyond a window's reach is checked against the search's,
-            the lower cost returned); gradient_rejected: why the gradient route's pose was refused before the
-            search ran.
+        route: "gradient" (the polish alone from the coarse pose), "wide gradient" (the polish from the coarse
+            pose started at the wide search's size: a gradient pose that travelled beyond a window's reach is
+            checked against it, the lower cost returned), "search" (lattice search + polish) or "wide search"
+            (``Tuning.wide_step_pixels``, after a refused search): the route of the returned candidate;
+            gradient_rejected: why the gradient route's pose was refused before the search ran.
         polish: the Levenberg-Marquardt stages run, every route's (``PolishStats``).
         error: set when the query failed (then ``pose`` is the coarse pose).
     """

@@ -1,6 +1,7 @@
 """The routes from a coarse pose to a candidate: the gradient route (Levenberg-Marquardt alone, coarse to fine),
-the search route (best-first lattice search over step levels, then the polish) and the wide search route (lattice
-levels of wide steps at a very small size, then the polish coarse to fine from there).
+the search route (best-first lattice search over step levels, then the polish), the wide gradient route (the polish
+from the prior started at a very small size) and the wide search route (lattice levels of wide steps at that size,
+then the polish coarse to fine from there).
 
 Each route takes the query's :class:`QueryContext` and returns a :class:`Candidate`: the pose the acceptance
 rule (``trust.judge``) then judges, with the costs and the effort that led to it.
@@ -103,6 +104,26 @@ def _route(ctx: QueryContext, search: bool) -> Candidate:
     return cand
 
 
+def wide_gradient_route(ctx: QueryContext) -> Candidate:
+    """The polish from the coarse pose started at the wide search's size ``plan.cam_wide`` (``Tuning.wide_max_side``),
+    then coarse to fine over the pyramid, final and polish sizes: the second hypothesis for a gradient route that
+    travelled beyond the cs window's reach (``refiner._beyond_reach``). At 32 px a texture of a few pixels' period at
+    the final size (stripes, tiles, shelves) is blurred away, so the first stage follows the view's coarse structure
+    instead of the nearest period (``../shared/data/cases/room_stripes``). Needs ``config.polishes``."""
+    coarse = ctx.plan.coarse_pose
+    cand = Candidate("wide gradient", coarse, math.nan, math.nan, coarse)
+    cand.pose = _polish_from_wide_size(ctx, cand)
+    _scorer_to_judge_size(ctx)
+    return cand
+
+
+def _polish_from_wide_size(ctx: QueryContext, cand: Candidate) -> Pose:
+    """The polish from ``cand.pose`` over the wide, pyramid, final and polish sizes (``_polish``, the first stage
+    not near its minimum)."""
+    plan = ctx.plan
+    return _polish(ctx, cand, [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish], near=False)
+
+
 def _scorer_to_judge_size(ctx: QueryContext) -> None:
     """Leave the scorer at ``judge_cam`` on the query's renderer, where the rule scores the candidate (its costs
     so far, at that size and renderer, stay cached)."""
@@ -128,8 +149,7 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
                                             min(cfg.tuning.max_expansions_per_level, remaining), pattern=True)
         remaining -= used
     cand.pose = cand.after_coarse = best_pose
-    cams = [plan.cam_wide, plan.cam_coarse, plan.cam_final, plan.cam_polish]
-    cand.pose = _polish(ctx, cand, cams, near=False)
+    cand.pose = _polish_from_wide_size(ctx, cand)
     _scorer_to_judge_size(ctx)
     return cand
 

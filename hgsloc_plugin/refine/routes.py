@@ -27,6 +27,12 @@ from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, PolishStats, po
 from .scorer import Scorer
 from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 
+#: the wide search polishes its lattice's best pose and up to this many minus one more distinct low ones
+#: (``distinct_minima``), and returns the polished pose of lowest cost at the judging size
+WIDE_HYPOTHESES = 3
+#: the wide search's hypotheses lie more than this many of its coarsest steps (``Tuning.wide_step_pixels[0]``) apart
+WIDE_SEPARATION_STEPS = 2.0
+
 
 @dataclass
 class QueryContext:
@@ -136,22 +142,49 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     """The wide search, for priors tens of pixels of image motion off (after the search's pose is refused):
     best-first lattice levels of the plan's steps (``Tuning.wide_step_pixels``) with pattern moves, scored at
     the small ``plan.cam_wide`` (``wide_max_side``) where the cost still falls towards the truth, then the polish
-    coarse to fine from that size over the wide, pyramid, final and polish sizes. Needs ``config.polishes``."""
+    coarse to fine from that size over the wide, pyramid, final and polish sizes, from the lattice's best pose and
+    from up to ``WIDE_HYPOTHESES - 1`` more distinct low ones (:func:`distinct_minima`): the polished pose of lowest
+    cost at the judging size is the candidate. Needs ``config.polishes``."""
     cfg, plan, scorer, coarse = ctx.config, ctx.plan, ctx.scorer, ctx.plan.coarse_pose
     scorer.set_query(plan.cam_wide, ctx.image, renderer=ctx.renderer)
     best_pose, best_cost = coarse, float(scorer([coarse])[0])
     cand = Candidate("wide search", coarse, math.nan, math.nan, coarse)
+    scored = [(coarse, best_cost)]
     remaining = cfg.tuning.max_expansions
     for step in plan.levels:
         if remaining <= 0:
             break
         best_pose, best_cost, used = _level(ctx, cand, best_pose, best_cost, step, plan.cam_wide,
-                                            min(cfg.tuning.max_expansions_per_level, remaining), pattern=True)
+                                            min(cfg.tuning.max_expansions_per_level, remaining), pattern=True,
+                                            scored=scored)
         remaining -= used
-    cand.pose = cand.after_coarse = best_pose
-    cand.pose = _polish_from_wide_size(ctx, cand)
+    separation = WIDE_SEPARATION_STEPS * cfg.tuning.wide_step_pixels[0]
+    hypotheses = []
+    for start in distinct_minima(scored, plan, WIDE_HYPOTHESES, separation):
+        hyp = Candidate(cand.route, start, math.nan, math.nan, start)
+        hyp.pose = _polish_from_wide_size(ctx, hyp)
+        hypotheses.append(hyp)
     _scorer_to_judge_size(ctx)
+    pick = hypotheses[int(np.argmin(scorer([h.pose for h in hypotheses])))] if len(hypotheses) > 1 else hypotheses[0]
+    cand.pose, cand.after_coarse = pick.pose, pick.after_coarse
+    # the picked hypothesis's stages last: the rule reads its last stage's model (``trust.last_stage_at``)
+    cand.polish = [s for h in hypotheses if h is not pick for s in h.polish] + pick.polish
     return cand
+
+
+def distinct_minima(scored: list[tuple[Pose, float]], plan: Plan, n: int, pixels: float) -> list[Pose]:
+    """Up to ``n`` poses of ``scored`` ((pose, cost) pairs), lowest cost first, each more than ``pixels`` of image
+    motion at the final size (``Plan.pixels_apart``) from every one taken before it; ties in cost keep ``scored``'s
+    order."""
+    order = sorted(range(len(scored)), key=lambda i: scored[i][1])
+    taken: list[Pose] = []
+    for i in order:
+        pose = scored[i][0]
+        if len(taken) >= n:
+            break
+        if all(plan.pixels_apart(pose, t) > pixels for t in taken):
+            taken.append(pose)
+    return taken
 
 
 def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
@@ -187,10 +220,11 @@ def _search_levels(ctx: QueryContext, cand: Candidate) -> None:
 
 
 def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tuple[float, float], cam: Camera,
-           budget: int, pattern: bool) -> tuple[Pose, float, int]:
+           budget: int, pattern: bool, scored: list[tuple[Pose, float]] | None = None) -> tuple[Pose, float, int]:
     """One best-first level of ``step`` (degrees, scene units) from ``pose`` at its ``cost``, scored at ``cam``
-    (the scorer's current size), in ``config.tuning.neighbourhood``; adds its effort to ``cand``. Returns the best pose,
-    its cost and the expansions used."""
+    (the scorer's current size), in ``config.tuning.neighbourhood``; adds its effort to ``cand`` and, given
+    ``scored``, every pose it scored with its cost (its start excluded). Returns the best pose, its cost and the
+    expansions used."""
     cfg, plan = ctx.config, ctx.plan
     s_rot, s_t = step
     if cfg.tuning.neighbourhood == "paper":
@@ -202,6 +236,9 @@ def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tu
                         weight=cfg.tuning.heuristic_weight, depth_cost=cfg.tuning.depth_cost, pattern=pattern)
     cand.expansions += lr.expansions
     cand.history.extend(lr.history)
+    if scored is not None:
+        origin = (0,) * space.dim
+        scored.extend((space.pose(k), c) for k, c in lr.scored.items() if k != origin)
     cand.levels.append(LevelStats(s_rot, s_t, cam.width, cam.height, lr.expansions, lr.renders, lr.best_cost,
                                   lr.stopped))
     return space.pose(lr.best_key), lr.best_cost, lr.expansions

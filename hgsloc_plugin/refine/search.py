@@ -96,7 +96,8 @@ class PaperSpace:
 
 @dataclass
 class LevelResult:
-    """Outcome of one level: best lattice key and cost, counts and the best cost after each expansion."""
+    """Outcome of one level: best lattice key and cost, counts, the best cost after each expansion and every key
+    scored with its cost (the origin's included; keys outside the trust region left out)."""
 
     best_key: tuple[int, ...]
     best_cost: float
@@ -104,6 +105,7 @@ class LevelResult:
     renders: int = 0
     history: list[float] = field(default_factory=list)
     stopped: str = ""
+    scored: dict[tuple[int, ...], float] = field(default_factory=dict)
 
 
 def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarray],
@@ -164,4 +166,5 @@ def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarra
             break
     if not res.stopped:
         res.stopped = "budget" if res.expansions >= budget else "open list empty"
+    res.scored = {k: c for k, c in costs.items() if math.isfinite(c)}
     return res

@@ -30,7 +30,7 @@ calibration (share of accepted poses whose error lies within 1 / 2 / 3 sigma, ce
 root of the covariance trace, so a calibrated 3-D Gaussian puts 61 / 99 / 100 % there), the confidence's AUC
 (the probability that an accepted right answer, within 2 cm-eq and 1 deg, has a higher confidence than an accepted
 wrong one), renders and seconds per query. ``--raw`` keeps one JSON line per trial (to recompute the tables or fit
-a calibration).
+a calibration), each route's judged candidate in it (``judged``: route, error in cm-eq and deg, refusal reason).
 """
 
 from __future__ import annotations
@@ -408,8 +408,11 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                     floor_refiners[key] = hp.HGSLocPlugin(base.scene, base.config.replace(**floor.tuning()),
                                                           renderer=base.renderer)
                 refiner = floor_refiners[key]
-            r = refiner.refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
             cm = 100.0 * REFERENCE_DEPTH / depth  # cm-eq per scene unit
+            judged: list = []  # each route's candidate as the rule judged it: route, cm-eq, deg, refusal reason
+            refiner.on_judged = _judged_into(judged, gt, cm)
+            r = refiner.refine(img, v.cam, prior, name=f"{tr.scene}-{tr.view}", **settings)
+            refiner.on_judged = None
             t0, r0 = prior.errors_to(gt)
             t1, r1 = r.pose.errors_to(gt)
             rec = {"index": tr.index, "scene": tr.scene, "view": tr.view, "localizer": tr.localizer,
@@ -420,13 +423,22 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                    "sigma_t": float(r.sigma_t) * cm, "sigma_r": float(r.sigma_r_deg),
                    "renders": int(r.renders), "seconds": float(r.seconds),
                    "cost_initial": float(r.cost_initial), "cost_final": float(r.cost_final),
-                   "gradient_rejected": r.gradient_rejected,
+                   "gradient_rejected": r.gradient_rejected, "judged": judged,
                    "map_floor": None if floor is None else [floor.depth, floor.deg],
                    "assessment": None if r.assessment is None else r.assessment.to_dict()}
             f.write(json.dumps(rec) + "\n")
             f.flush()
             if progress and (i + 1) % 10 == 0:
                 print(f"  {i + 1} / {len(trials)} trials, {time.time() - t_start:.0f} s", file=sys.stderr, flush=True)
+
+
+def _judged_into(out: list, gt, cm: float):
+    """A ``Refiner.on_judged`` hook appending [route, centre error cm-eq, rotation error deg, refusal reason or
+    None] of each judged candidate to ``out`` (``cm``: cm-eq per scene unit)."""
+    def hook(cand, verdict, plan) -> None:
+        t, r = cand.pose.errors_to(gt)
+        out.append([cand.route, round(t * cm, 4), round(r, 4), verdict.rejected])
+    return hook
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """Map-scale benchmark: per-render and per-query cost from 50k to 1M Gaussians, whole map vs working set vs routes.
 
-Usage: python -m benchmarks.map_scale [--k 1 4 10 20] [--queries 3] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
+Usage: python -m benchmarks.map_scale [--k 1 4 10 20] [--queries 9] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
        python -m benchmarks.map_scale --stages [--k 1 20]
-       python -m benchmarks.map_scale --footprints [--k 1 20] [--queries 3]
+       python -m benchmarks.map_scale --footprints [--k 1 20] [--queries 9]
 
 The demo room densified k times: ``--maps split`` (the default; ``demo.scene.densify_split``: every Gaussian split
 into k children with its moments, queries rendered from the densified map, so the truth is a minimum) or
@@ -274,7 +274,8 @@ def _build(r: dict) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--k", nargs="+", type=int, default=[1, 4, 10, 20])
-    ap.add_argument("--queries", type=int, default=3)
+    ap.add_argument("--queries", type=int, default=9,
+                    help="queries per map (9: a median of 3 moved with the queries drawn, 2026-12-07)")
     ap.add_argument("--noise", default="3cm,1deg")
     ap.add_argument("--maps", choices=MAPS, default="split",
                     help="split: densified by splitting, queries rendered from the map (the truth a minimum); "

@@ -71,6 +71,37 @@ def test_wide_search_polishes_distinct_lattice_minima(monkeypatch):
     assert one.route == "wide search" and not one.accepted and one.renders < r.renders
 
 
+@pytest.mark.slow
+def test_agreeing_wide_hypotheses_stand_in_for_the_alignment_test(monkeypatch):
+    """A real DFNet 7-Scenes error (62 cm-eq / 15 deg, the trials' room trial 362: view 182, error 15721) on a
+    photo-degraded reference render of the room: the wide search reaches the truth, but its minimum's one-pixel rise
+    is under ``MIN_ALIGNMENT`` of its cost (weak alignment). Its three hypotheses, started over 32 px apart, end
+    within ``WIDE_AGREEMENT_PX`` of each other: since 2026-12-07 that agreement stands in for the alignment test
+    and the pose is accepted within 0.1 cm-eq / 0.1 deg. Without it (no agreement possible) the prior is kept."""
+    from benchmarks.trials import REFERENCE_DEPTH, Views, localizer_errors
+    from hgsloc_plugin.refine import routes
+
+    shared_path("poses", "7scenes")
+    room = Views("room")
+    gt, img, depth = room.view(182)
+    err = localizer_errors("dfnet")[0][15721]
+    prior = hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt
+    cm = 100.0 * REFERENCE_DEPTH / depth
+    refiner = hp.HGSLocPlugin(room.scene)
+    judged = []
+    refiner.on_judged = lambda cand, verdict, plan: judged.append((cand.route, verdict.rejected, cand.agreeing))
+    r = refiner.refine(img, room.cam, prior)
+    t, a = r.pose.errors_to(gt)
+    assert prior.errors_to(gt)[0] * cm > 50.0
+    assert judged[-2:] == [("wide search", "weak alignment", 2), ("wide search", None, 2)], judged
+    assert r.accepted and r.route == "wide search" and t * cm < 0.1 and a < 0.1, (t * cm, a)
+    monkeypatch.setattr(routes, "WIDE_AGREEMENT_PX", -1.0)
+    judged.clear()
+    kept = refiner.refine(img, room.cam, prior)
+    assert not kept.accepted and kept.rejected == "weak alignment" and judged[-1][:2] == ("wide search",
+                                                                                         "weak alignment")
+
+
 @pytest.fixture(scope="module")
 def room():
     return make_room_scene(density=0.5)
@@ -437,8 +468,9 @@ def test_no_wide_search_when_both_routes_end_in_one_minimum():
     refused for "weak alignment" in one minimum (their poses within ``same_minimum_pixels``). Their agreement
     stands in for the alignment test (since 2026-12-05): the search's pose is judged without it and accepted,
     1.8 cm / 0.39 deg off, with the honest uncertainty of a photo that noisy (sigma over 10 cm, confidence near 0);
-    no wide search runs. Without the agreement (``same_minimum_pixels=0``) the wide search runs and is refused, at
-    about 1.5 times the renders. With the query's own small trust region there is nothing wider to search."""
+    no wide search runs. Without the agreement (``same_minimum_pixels=0``) the wide search runs, at about 1.6 times
+    the renders, and ends in the same minimum (refused for weak alignment until 2026-12-07; now accepted on its own
+    hypotheses' agreement). With the query's own small trust region there is nothing wider to search."""
     scene = make_room_scene(density=0.35)
     cam = hp.Camera(160, 120, 140.0, 140.0, 80.0, 60.0)
     rng = np.random.default_rng(7)
@@ -454,7 +486,7 @@ def test_no_wide_search_when_both_routes_end_in_one_minimum():
     rule_t = math.sqrt(np.trace(skip.rule_covariance[3:, 3:]))
     assert t < 0.03 and a < 0.5 and rule_t > 0.1 and skip.confidence < 0.01, (t, a, rule_t)
     assert t < 2 * skip.sigma_t, (t, skip.sigma_t)
-    assert run.route == "wide search" and not run.accepted
+    assert run.route == "wide search" and run.accepted and run.pose.errors_to(gts[3])[0] < 0.03
     assert skip.renders < 0.8 * run.renders
     # a query's own trust region, no larger than the wide search's would be, leaves it no room: not run either
     no_skip = hp.RefineConfig.preset("default", same_minimum_pixels=0.0)

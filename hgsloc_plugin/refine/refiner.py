@@ -4,7 +4,8 @@
 travelled far) -> (search route) -> (wide search route) (``routes.py``), each judged by the acceptance rule
 (``trust.judge``) -> result (``result.py``). Where the gradient route and the search agree (one minimum), the
 search's pose is judged again: without the alignment test when both were refused for weak alignment only, in the
-wide search's region when both were cut off by their own trust region's edge.
+wide search's region when both were cut off by their own trust region's edge. Where the wide search's polished
+hypotheses agree (``Candidate.agreeing``), its pose refused for weak alignment only is judged without that test.
 """
 
 from __future__ import annotations
@@ -142,6 +143,10 @@ class Refiner:
                     return _result(ctx, tried, time.perf_counter() - t0)
             logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
             tried.append(self._judged(ctx, wide_search_route(ctx)))
+            if tried[-1][1].rejected == WEAK_ALIGNMENT and tried[-1][0].agreeing:
+                logger.debug("query %s: the wide search's hypotheses agree, refused for weak alignment only; the rule "
+                             "judges its pose on their agreement instead", name)
+                tried.append(self._judged(ctx, tried[-1][0], structural=False))
         return _result(ctx, tried, time.perf_counter() - t0)
 
     def _judged(self, ctx: QueryContext, cand: Candidate, structural: bool = True) -> tuple[Candidate, Verdict]:

@@ -23,7 +23,7 @@ from ..render import RendererLike
 from ..render.lod import coarse_lod
 from .config import RefineConfig
 from .plan import Plan
-from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, PolishStats, polish
+from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, STAGE_STEP_PX, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 
@@ -32,6 +32,10 @@ from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 WIDE_HYPOTHESES = 3
 #: the wide search's hypotheses lie more than this many of its coarsest steps (``Tuning.wide_step_pixels[0]``) apart
 WIDE_SEPARATION_STEPS = 2.0
+#: two polished hypotheses agree when they end this close (pixels of image motion at the judging size): within the
+#: resolution at which a polish stage hands over to a finer one, so two polishes from starts over 32 px apart that
+#: meet there found one basin whose minimum the polish resolves (``Candidate.agreeing``)
+WIDE_AGREEMENT_PX = STAGE_STEP_PX
 
 
 @dataclass
@@ -71,7 +75,8 @@ class QueryContext:
 class Candidate:
     """A route's result: its pose, its cost and the coarse pose's cost (at ``judge_cam`` once judged: the rule,
     ``trust.judge``, scores both with its own poses in one batch; before, the search's running costs), the search's
-    pose after its pyramid levels (the coarse pose when no search ran), and the route's effort."""
+    pose after its pyramid levels (the coarse pose when no search ran), the route's effort, and for the wide search
+    how many of its other polished hypotheses ended within ``WIDE_AGREEMENT_PX`` of its pose (``agreeing``)."""
 
     route: str
     pose: Pose
@@ -82,6 +87,7 @@ class Candidate:
     levels: list[LevelStats] = field(default_factory=list)
     history: list[float] = field(default_factory=list)
     expansions: int = 0
+    agreeing: int = 0
 
 
 def gradient_route(ctx: QueryContext) -> Candidate:
@@ -167,6 +173,9 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     _scorer_to_judge_size(ctx)
     pick = hypotheses[int(np.argmin(scorer([h.pose for h in hypotheses])))] if len(hypotheses) > 1 else hypotheses[0]
     cand.pose, cand.after_coarse = pick.pose, pick.after_coarse
+    to_judge_px = ctx.judge_cam.fx / plan.cam_final.fx  # ``Plan.pixels_apart`` is at the final size
+    cand.agreeing = sum(plan.pixels_apart(h.pose, pick.pose) * to_judge_px <= WIDE_AGREEMENT_PX
+                        for h in hypotheses if h is not pick)
     # the picked hypothesis's stages last: the rule reads its last stage's model (``trust.last_stage_at``)
     cand.polish = [s for h in hypotheses if h is not pick for s in h.polish] + pick.polish
     return cand

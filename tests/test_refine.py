@@ -44,6 +44,19 @@ def test_distinct_minima_takes_the_lowest_poses_apart_by_more_than_the_separatio
     assert len(distinct_minima(scored, plan, 1, 32.0)) == 1 and distinct_minima([], plan, 3, 32.0) == []
 
 
+def _dfnet_trial(scene: str, view: int, error: int):
+    """One of ``benchmarks/trials.py``'s trials: the scene's views, view ``view``'s true pose and photo-degraded
+    reference render, the prior made of DFNet's 7-Scenes error ``error`` scaled to the view's depth, and cm-eq
+    per scene unit."""
+    from benchmarks.trials import REFERENCE_DEPTH, Views, localizer_errors
+
+    shared_path("poses", "7scenes")
+    views = Views(scene)
+    gt, img, depth = views.view(view)
+    err = localizer_errors("dfnet")[0][error]
+    return views, gt, img, hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt, 100.0 * REFERENCE_DEPTH / depth
+
+
 @pytest.mark.slow
 def test_wide_search_polishes_distinct_lattice_minima(monkeypatch):
     """A real DFNet 7-Scenes error (29 cm-eq / 4.4 deg, the trials' donut trial 1356: view 176, error 16364) on a
@@ -51,16 +64,10 @@ def test_wide_search_polishes_distinct_lattice_minima(monkeypatch):
     search's best lattice pose lies in another minimum. Since 2026-12-07 it polishes that pose and the next two
     distinct low ones (``routes.WIDE_HYPOTHESES``), and one of those reaches the truth at the lowest cost: accepted
     within 0.1 cm-eq / 0.1 deg. From the best lattice pose alone the prior is kept."""
-    from benchmarks.trials import REFERENCE_DEPTH, Views, localizer_errors
     from hgsloc_plugin.refine import routes
 
-    shared_path("poses", "7scenes")
     shared_path("scenes", "donut.ply")
-    donut = Views("donut")
-    gt, img, depth = donut.view(176)
-    err = localizer_errors("dfnet")[0][16364]
-    prior = hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt
-    cm = 100.0 * REFERENCE_DEPTH / depth
+    donut, gt, img, prior, cm = _dfnet_trial("donut", 176, 16364)
     assert prior.errors_to(gt)[0] * cm > 25.0
     refiner = hp.HGSLocPlugin(donut.scene)
     r = refiner.refine(img, donut.cam, prior)
@@ -78,15 +85,9 @@ def test_agreeing_wide_hypotheses_stand_in_for_the_alignment_test(monkeypatch):
     is under ``MIN_ALIGNMENT`` of its cost (weak alignment). Its three hypotheses, started over 32 px apart, end
     within ``WIDE_AGREEMENT_PX`` of each other: since 2026-12-07 that agreement stands in for the alignment test
     and the pose is accepted within 0.1 cm-eq / 0.1 deg. Without it (no agreement possible) the prior is kept."""
-    from benchmarks.trials import REFERENCE_DEPTH, Views, localizer_errors
     from hgsloc_plugin.refine import routes
 
-    shared_path("poses", "7scenes")
-    room = Views("room")
-    gt, img, depth = room.view(182)
-    err = localizer_errors("dfnet")[0][15721]
-    prior = hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt
-    cm = 100.0 * REFERENCE_DEPTH / depth
+    room, gt, img, prior, cm = _dfnet_trial("room", 182, 15721)
     refiner = hp.HGSLocPlugin(room.scene)
     judged = []
     refiner.on_judged = lambda cand, verdict, plan: judged.append((cand.route, verdict.rejected, cand.agreeing))
@@ -502,14 +503,7 @@ def test_routes_agreeing_at_their_trust_regions_edge_are_judged_in_the_wide_regi
     are refused at their trust region's edge only, at one pose. Since 2026-12-06 that pose is judged in the wide
     search's larger region, where it passes: accepted within 0.1 cm-eq / 0.1 deg, no wide search run. Without
     the agreement (``same_minimum_pixels=0``) the wide search, from the prior, ends elsewhere and is refused."""
-    from benchmarks.trials import REFERENCE_DEPTH, Views, localizer_errors
-
-    shared_path("poses", "7scenes")
-    room = Views("room")
-    gt, img, depth = room.view(8)
-    err = localizer_errors("dfnet")[0][15765]
-    prior = hp.Pose(err.qvec, err.tvec * depth / REFERENCE_DEPTH) @ gt
-    cm = 100.0 * REFERENCE_DEPTH / depth
+    room, gt, img, prior, cm = _dfnet_trial("room", 8, 15765)
     assert prior.errors_to(gt)[0] * cm > 30.0
     r = hp.HGSLocPlugin(room.scene).refine(img, room.cam, prior)
     t, a = r.pose.errors_to(gt)

@@ -60,12 +60,14 @@ class Plan:
             return False
         return rotation_angle_deg(self.coarse_pose.R, pose.R) <= self.max_rotation_deg
 
-    def pixels_apart(self, a: Pose, b: Pose) -> float:
+    def pixels_apart(self, a: Pose, b: Pose, cam: Camera | None = None) -> float:
         """Image motion between two poses at the final size (pixels): camera-centre distance at the plan's depth
-        plus the rotation between them, both times the mean focal length."""
+        plus the rotation between them, both times the mean focal length; at ``cam``'s size (one of the plan's
+        cameras) when given, scaled by its focal length over the final size's."""
         f = 0.5 * (self.cam_final.fx + self.cam_final.fy)
         shift, deg = a.errors_to(b)
-        return shift / self.depth * f + math.radians(deg) * f
+        px = shift / self.depth * f + math.radians(deg) * f
+        return px if cam is None else px * cam.fx / self.cam_final.fx
 
     def travel(self, pose: Pose) -> float:
         """The larger of ``pose``'s centre shift / max_shift and rotation / max_rotation_deg from the prior."""

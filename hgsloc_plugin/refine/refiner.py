@@ -206,8 +206,7 @@ def _beyond_reach(plan: Plan, cand: Candidate) -> bool:
     no window saw whole, where a periodic texture or the rotation / translation ambiguity can hold it in a wrong
     minimum, so the polish from the prior started at the wide search's size (``routes.wide_gradient_route``,
     where such texture is blurred away) runs as a second hypothesis (``_lower_cost_last``)."""
-    coarse_px = plan.pixels_apart(plan.coarse_pose, cand.pose) * plan.cam_coarse.fx / plan.cam_final.fx
-    return coarse_px > WINDOW_RADIUS
+    return plan.pixels_apart(plan.coarse_pose, cand.pose, plan.cam_coarse) > WINDOW_RADIUS
 
 
 def _lower_cost_last(tried: list[tuple[Candidate, Verdict]]) -> list[tuple[Candidate, Verdict]]:

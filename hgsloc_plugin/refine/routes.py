@@ -173,8 +173,7 @@ def wide_search_route(ctx: QueryContext) -> Candidate:
     _scorer_to_judge_size(ctx)
     pick = hypotheses[int(np.argmin(scorer([h.pose for h in hypotheses])))] if len(hypotheses) > 1 else hypotheses[0]
     cand.pose, cand.after_coarse = pick.pose, pick.after_coarse
-    to_judge_px = ctx.judge_cam.fx / plan.cam_final.fx  # ``Plan.pixels_apart`` is at the final size
-    cand.agreeing = sum(plan.pixels_apart(h.pose, pick.pose) * to_judge_px <= WIDE_AGREEMENT_PX
+    cand.agreeing = sum(plan.pixels_apart(h.pose, pick.pose, ctx.judge_cam) <= WIDE_AGREEMENT_PX
                         for h in hypotheses if h is not pick)
     # the picked hypothesis's stages last: the rule reads its last stage's model (``trust.last_stage_at``)
     cand.polish = [s for h in hypotheses if h is not pick for s in h.polish] + pick.polish
@@ -247,7 +246,7 @@ def _level(ctx: QueryContext, cand: Candidate, pose: Pose, cost: float, step: tu
     cand.history.extend(lr.history)
     if scored is not None:
         origin = (0,) * space.dim
-        scored.extend((space.pose(k), c) for k, c in lr.scored.items() if k != origin)
+        scored.extend((space.pose(k), c) for k, c in lr.costs.items() if k != origin and math.isfinite(c))
     cand.levels.append(LevelStats(s_rot, s_t, cam.width, cam.height, lr.expansions, lr.renders, lr.best_cost,
                                   lr.stopped))
     return space.pose(lr.best_key), lr.best_cost, lr.expansions

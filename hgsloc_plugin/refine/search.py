@@ -97,7 +97,7 @@ class PaperSpace:
 @dataclass
 class LevelResult:
     """Outcome of one level: best lattice key and cost, counts, the best cost after each expansion and every key
-    scored with its cost (the origin's included; keys outside the trust region left out)."""
+    seen with its cost (the origin's included; inf for keys outside the trust region, never scored)."""
 
     best_key: tuple[int, ...]
     best_cost: float
@@ -105,7 +105,7 @@ class LevelResult:
     renders: int = 0
     history: list[float] = field(default_factory=list)
     stopped: str = ""
-    scored: dict[tuple[int, ...], float] = field(default_factory=dict)
+    costs: dict[tuple[int, ...], float] = field(default_factory=dict)
 
 
 def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarray],
@@ -166,5 +166,5 @@ def best_first(space, start_cost: float, score: Callable[[list[Pose]], np.ndarra
             break
     if not res.stopped:
         res.stopped = "budget" if res.expansions >= budget else "open list empty"
-    res.scored = {k: c for k, c in costs.items() if math.isfinite(c)}
+    res.costs = costs
     return res

@@ -27,9 +27,7 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
 - ``working set + LOD 1 / 2 / 3 / 4 px, gradient first``: every render from a cut of the map's level-of-detail
   hierarchy (``render/hierarchy.py``, ``Tuning.lod_pixels``), built in the process (its seconds and size are a
   column) and compared per query with the exact path (``vs exact``: the median and largest change of the
-  translation error, in % of the query's depth); each polish that ends at the judging size goes on for up to two
-  derivative passes on the exact map (``Tuning.lod_finish``, ``routes.exact_finish``), and ``... without the exact
-  finish`` leaves them out;
+  translation error, in % of the query's depth);
 - ``working set, gradient first, plain renders``: the exact path with every scoring size rendered as 3DGS renders
   at its training size (``Tuning.antialias=False``; the default until 2026-12-07: each size below the query image
   renders as the image reduced to it, ``Camera.downsample``), compared with the default exact path;
@@ -74,8 +72,6 @@ PATHS = {
     "working set + coarse LOD, gradient first": dict(working_set=True, routes="gradient_first", coarse_lod_pixels=2.0),
     **{f"working set + LOD {px} px, gradient first": dict(working_set=True, routes="gradient_first",
                                                           lod_pixels=float(px)) for px in (1, 2, 3, 4)},
-    **{f"working set + LOD {px} px without the exact finish, gradient first":
-       dict(working_set=True, routes="gradient_first", lod_pixels=float(px), lod_finish=False) for px in (1, 2)},
     "working set, gradient first, plain renders": dict(working_set=True, routes="gradient_first", antialias=False),
     "working set + LOD 2 px, gradient first, plain renders": dict(working_set=True, routes="gradient_first",
                                                                  lod_pixels=2.0, antialias=False),
@@ -88,7 +84,6 @@ PATHS |= {path: PATHS["working set, gradient first"] for path in NUDGED}
 #: the exact path each level-of-detail (or nudged) path's accuracy is compared with
 EXACT = {path: "working set, gradient first"
          for path in [f"working set + LOD {px} px, gradient first" for px in (1, 2, 3, 4)] + list(NUDGED)
-         + [f"working set + LOD {px} px without the exact finish, gradient first" for px in (1, 2)]
          + ["working set, gradient first, plain renders"]}
 EXACT["working set + LOD 2 px, gradient first, plain renders"] = "working set, gradient first, plain renders"
 MAPS = ("split", "jitter", "snow_sharp")

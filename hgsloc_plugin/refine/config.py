@@ -43,9 +43,6 @@ class Tuning:
             (``render/hierarchy.py``, built once per map and cached), one per image size, merging cells of up to
             this many pixels at that size; approximate (on real photos 1 px moved poses 0.002 % of the depth, 2 px
             0.02 %: ``benchmarks/map_scale.md``); with a working set only; None: the exact map.
-        lod_finish: with ``lod_pixels``, an accepted polished pose (not fused with its prior) takes one Gauss-Newton
-            step on the exact map at the judging size (``routes.exact_finish``): the cut's sub-pixel bias removed
-            for one exact derivative pass.
         antialias: every scoring size below the query image's (the wide search's excepted) renders as the image
             reduced to it (``Camera.downsample``: the 3DGS dilation scaled, the reduction's filter with its opacity
             compensation; ``benchmarks/defaults.md``); off: every size renders as 3DGS renders at its training size.
@@ -88,7 +85,6 @@ class Tuning:
     working_set_pixels: float = 8.0
     coarse_lod_pixels: float | None = None
     lod_pixels: float | None = None
-    lod_finish: bool = True
     antialias: bool = True
     polish_iterations: int = 16
     wide_step_pixels: tuple[float, ...] = (16.0, 8.0)

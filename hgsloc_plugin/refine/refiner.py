@@ -32,15 +32,7 @@ from ..render.working_set import WorkingSet
 from .config import RefineConfig
 from .plan import Plan, make_plan
 from .result import RefineResult
-from .routes import (
-    Candidate,
-    QueryContext,
-    exact_finish,
-    gradient_route,
-    search_route,
-    wide_gradient_route,
-    wide_search_route,
-)
+from .routes import Candidate, QueryContext, gradient_route, search_route, wide_gradient_route, wide_search_route
 from .scorer import Scorer
 from .trust import TRUST_REGION_EDGE, WEAK_ALIGNMENT, Verdict, judge
 
@@ -114,7 +106,7 @@ class Refiner:
         plan = make_plan(cfg, self.scene, camera, coarse_pose, prior)
         renderer = self.renderer_for(plan)
         ctx = QueryContext(cfg, plan, renderer, Scorer(renderer, cfg.metric, cfg.background, cfg.tuning.mask_alpha),
-                           img, name, self.on_stage, exact=self.exact_for(plan))
+                           img, name, self.on_stage)
         routes = cfg.route_choice()
         main_route = search_route if routes.main == "search" else gradient_route
         tried: list[tuple[Candidate, Verdict]] = []
@@ -136,26 +128,26 @@ class Refiner:
             if _same_minimum(tried[:2], plan, cfg.tuning.same_minimum_pixels):
                 logger.debug("query %s: gradient route and search refused in one minimum (%s); no wide search", name,
                              tried[-1][1].rejected)
-                return _result(ctx, tried, t0)
+                return _result(ctx, tried, time.perf_counter() - t0)
             wide = make_plan(cfg, self.scene, camera, coarse_pose, prior, cfg.tuning.wide_step_pixels)
             if wide.max_shift <= plan.max_shift and wide.max_rotation_deg <= plan.max_rotation_deg:
                 logger.debug("query %s: search rejected (%s); its trust region leaves a wide search no room", name,
                              tried[-1][1].rejected)
-                return _result(ctx, tried, t0)
+                return _result(ctx, tried, time.perf_counter() - t0)
             ctx = dataclasses.replace(ctx, plan=wide)
             if _agree_at_edge(tried, plan, cfg.tuning.same_minimum_pixels):
                 logger.debug("query %s: gradient route and search agree at their trust region's edge; the rule "
                              "judges the search's pose in the wide search's region", name)
                 tried.append(self._judged(ctx, tried[-1][0]))
                 if tried[-1][1].ends_refinement():
-                    return _result(ctx, tried, t0)
+                    return _result(ctx, tried, time.perf_counter() - t0)
             logger.debug("query %s: search rejected (%s); searching wide", name, tried[-1][1].rejected)
             tried.append(self._judged(ctx, wide_search_route(ctx)))
             if tried[-1][1].rejected == WEAK_ALIGNMENT and tried[-1][0].agreeing:
                 logger.debug("query %s: the wide search's hypotheses agree, refused for weak alignment only; the rule "
                              "judges its pose on their agreement instead", name)
                 tried.append(self._judged(ctx, tried[-1][0], structural=False))
-        return _result(ctx, tried, t0)
+        return _result(ctx, tried, time.perf_counter() - t0)
 
     def _judged(self, ctx: QueryContext, cand: Candidate, structural: bool = True) -> tuple[Candidate, Verdict]:
         """``cand`` and the rule's verdict on it; ``structural`` False: without the alignment test."""
@@ -183,20 +175,6 @@ class Refiner:
                           px * plan.depth / f, math.degrees(px / f),
                           select=None if lod is None else CutSelection(self.renderer, self.hierarchy(), lod),
                           per_camera=lod is not None)
-
-    def exact_for(self, plan: Plan) -> RendererLike | None:
-        """The exact renderer of an accepted pose's last step at the judging size (``routes.exact_finish``) when
-        :meth:`renderer_for`'s renders a level of detail (``Tuning.lod_pixels`` and ``lod_finish``): a
-        :class:`WorkingSet` of the whole map for that size alone; else None."""
-        tuning = self.config.tuning
-        if tuning.lod_pixels is None or not tuning.lod_finish or not tuning.working_set:
-            return None
-        if self.renderer.n < tuning.working_set_min:
-            return None
-        cam = plan.cam_polish if self.config.polishes else plan.cam_final
-        f = min(plan.cam_final.fx, plan.cam_final.fy)
-        px = tuning.working_set_pixels
-        return WorkingSet(self.renderer, [cam], px * plan.depth / f, math.degrees(px / f))
 
     def hierarchy(self) -> Hierarchy:
         """The map's level-of-detail hierarchy (``render/hierarchy.py``), built on first use or read from the cache
@@ -287,20 +265,14 @@ def _query_prior(prior: QueryPrior | None, settings: dict) -> QueryPrior:
     return QueryPrior(**given)
 
 
-def _result(ctx: QueryContext, tried: list[tuple[Candidate, Verdict]], t0: float) -> RefineResult:
-    """The result of a query from the routes tried, in order, and their verdicts (the last one decides); an accepted
-    polished pose judged on a level of detail is finished on the exact map (``routes.exact_finish``; its cost stays
-    the rule's); ``t0``: the query's start (``time.perf_counter``)."""
+def _result(ctx: QueryContext, tried: list[tuple[Candidate, Verdict]], seconds: float) -> RefineResult:
+    """The result of a query from the routes tried, in order, and their verdicts (the last one decides)."""
     plan = ctx.plan
     cand, verdict = tried[-1]
     polish = [s for c, _ in tried for s in c.polish]
-    pose = verdict.pose
-    if ctx.exact is not None and verdict.accepted and not verdict.fused and cand.polish:
-        pose, finish = exact_finish(ctx, pose)  # the level of detail's pose onto the exact map's minimum
-        polish.append(finish)
     renderer = ctx.renderer
     res = RefineResult(
-        pose=pose, initial_pose=plan.coarse_pose, name=ctx.name,
+        pose=verdict.pose, initial_pose=plan.coarse_pose, name=ctx.name,
         cost_initial=cand.cost_initial, cost_final=verdict.cost, accepted=verdict.accepted,
         confidence=verdict.confidence, sigma_t=verdict.sigma_t, sigma_r_deg=verdict.sigma_r_deg,
         covariance=verdict.covariance, rule_covariance=verdict.rule_covariance, rejected=verdict.rejected,
@@ -314,5 +286,5 @@ def _result(ctx: QueryContext, tried: list[tuple[Candidate, Verdict]], t0: float
         prior_error=math.nan if plan.prior_error is None else plan.prior_error,
         prior_error_deg=math.nan if plan.prior_error_deg is None else plan.prior_error_deg,
         working_set=renderer.largest, working_set_selections=renderer.selections,
-        renders=ctx.scorer.renders + sum(p.renders for p in polish), seconds=time.perf_counter() - t0)
+        renders=ctx.scorer.renders + sum(p.renders for p in polish), seconds=seconds)
     return res

@@ -23,17 +23,7 @@ from ..render import RendererLike
 from ..render.lod import coarse_lod
 from .config import RefineConfig
 from .plan import Plan
-from .polish import (
-    FINAL,
-    FINE_LINE_SEARCH,
-    LINE_SEARCH,
-    MIN_STEP_PX,
-    STAGE,
-    STAGE_STEP_PX,
-    Convergence,
-    PolishStats,
-    polish,
-)
+from .polish import FINAL, FINE_LINE_SEARCH, LINE_SEARCH, STAGE, STAGE_STEP_PX, PolishStats, polish
 from .scorer import Scorer
 from .search import LatticeSpace, LevelStats, PaperSpace, best_first
 
@@ -46,20 +36,13 @@ WIDE_SEPARATION_STEPS = 2.0
 #: resolution at which a polish stage hands over to a finer one, so two polishes from starts over 32 px apart that
 #: meet there found one basin whose minimum the polish resolves (``Candidate.agreeing``)
 WIDE_AGREEMENT_PX = STAGE_STEP_PX
-#: the exact finish of a pose accepted on a level of detail (``exact_finish``): one derivative pass at it (of
-#: ``EXACT_FINISH_PASSES``, the pass and room for one step), its Gauss-Newton step kept on its rendered cost (any
-#: decrease ends the stage), damped when it fails. One pass moved the room split 20 times 0.019 -> 0.0017 % of the
-#: depth from the exact map's poses, two 0.0017 (``benchmarks/map_scale.md``)
-EXACT_FINISH = Convergence(MIN_STEP_PX, 1.0)
-EXACT_FINISH_PASSES = 2
 
 
 @dataclass
 class QueryContext:
     """One query as the routes see it: settings, plan, the renderer (whole map or working set), the scorer (its
-    render count spans every route), the query image [H, W, 3] float32 at its own size, the refiner's stage
-    trace hook (``Refiner.on_stage``) and, when the renderer draws a level of detail, the exact one of an accepted
-    pose's last step (``exact``, ``Refiner.exact_for``; None: the renderer is exact)."""
+    render count spans every route), the query image [H, W, 3] float32 at its own size and the refiner's stage
+    trace hook (``Refiner.on_stage``)."""
 
     config: RefineConfig
     plan: Plan
@@ -68,7 +51,6 @@ class QueryContext:
     image: np.ndarray
     name: str | None = None
     on_stage: Callable[[str, float], None] | None = None
-    exact: RendererLike | None = None
 
     @contextlib.contextmanager
     def timed(self, stage: str) -> Iterator[None]:
@@ -289,18 +271,3 @@ def _polish(ctx: QueryContext, cand: Candidate, cams: list[Camera], near: bool) 
                                  line_search=FINE_LINE_SEARCH if near or i > 0 else LINE_SEARCH)
         cand.polish.append(stats)
     return pose
-
-
-def exact_finish(ctx: QueryContext, pose: Pose) -> tuple[Pose, PolishStats]:
-    """An accepted ``pose``, polished and judged on a level of detail, taken on by the polish on the exact map
-    (``ctx.exact``) at the judging size for one Gauss-Newton step (``EXACT_FINISH``): a cut's minimum lies a
-    fraction of a pixel off the exact one (0.05 px at 2 px on the room split 20 times), inside the step's model,
-    and far inside the rule's one-pixel moves. Kept only when the exact cost falls (the polish keeps its best
-    pose). Returns (the pose, the stage's stats)."""
-    cam = ctx.judge_cam
-    q = ctx.scorer.window_query(cam, ctx.image)
-    cfg = ctx.config
-    with ctx.timed(f"exact finish {cam.width}x{cam.height}"):
-        return polish(ctx.exact, cam, q, pose, depth=ctx.plan.depth, iterations=EXACT_FINISH_PASSES,
-                      allowed=ctx.plan.allows, background=cfg.background, mask_alpha=cfg.tuning.mask_alpha,
-                      converged=EXACT_FINISH, line_search=(1.0,))

@@ -1,6 +1,7 @@
 """Map floor: how far an imperfect map's cost minimum lies from the true pose, and what the refiner can see of it.
 
 Usage: python -m benchmarks.map_floor [--datasets snow_sharp snow lego] [--draws 8] [--out benchmarks/map_floor.md]
+       python -m benchmarks.map_floor --regional [--datasets snow_sharp snow lego]
 
 Part 1, per real query (``../shared/data/snow``: real photos against the sharp map ``snow_sharp`` and the imperfect
 ``snow``; ``lego``: held-out renders): the map's minimum (the default refinement from 3 priors 2 % of depth / 1 deg
@@ -189,12 +190,64 @@ def decision_part(name: str, refiner: hp.HGSLocPlugin, cam, queries, draws: int)
     return lines
 
 
+#: ``--regional``: the image halves a query's minimum is found on (column / row ranges as fractions of the image)
+HALVES = {"left": (0.0, 0.5, 0.0, 1.0), "right": (0.5, 1.0, 0.0, 1.0), "top": (0.0, 1.0, 0.0, 0.5),
+          "bottom": (0.0, 1.0, 0.5, 1.0)}
+
+
+def regional_part(name: str, refiner: hp.HGSLocPlugin, cam, queries) -> list[str]:
+    """``--regional``: per query, the minimum the refinement reaches from the true pose (``search_pose``) on the whole
+    image and on each half of it (a crop with its own principal point), as the offset of its centre in the true
+    camera's x / y / z (% of the depth) and its rotation (deg); then how well the floor of the nearest other views
+    (k = 1, 2, 3; distance: the angle between the optical axes in radians plus the centres' distance over the
+    depth) and of all other views (the root mean square, as ``MapFloor.without``) predict each view's own offset
+    (its offset over that floor)."""
+    lines = [f"\n### {name}: the minimum on image halves, and the floor of nearby views\n",
+             "| query | image | centre offset x / y / z (% of depth) | rotation (deg) |", "|---|---|---|---|"]
+    offsets = []
+    for i, (qname, gt, img, depth) in enumerate(queries):
+        h, w = img.shape[:2]
+        for part, (x0, x1, y0, y1) in {"whole": (0.0, 1.0, 0.0, 1.0), **HALVES}.items():
+            c0, c1, r0, r1 = round(x0 * w), round(x1 * w), round(y0 * h), round(y1 * h)
+            crop = hp.Camera(c1 - c0, r1 - r0, cam.fx, cam.fy, cam.cx - c0, cam.cy - r0)
+            r = refiner.refine(np.ascontiguousarray(img[r0:r1, c0:c1]), crop, gt, name=f"{qname} {part}")
+            if r.search_pose is None:
+                lines.append(f"| {i} | {part} | no refined pose ({r.rejected}) | |")
+                continue
+            d = 100.0 * gt.R @ (r.search_pose.centre() - gt.centre()) / depth
+            if part == "whole":
+                offsets.append(float(np.linalg.norm(d)))
+            lines.append(f"| {i} | {part} | {d[0]:+.2f} / {d[1]:+.2f} / {d[2]:+.2f} | "
+                         f"{r.search_pose.errors_to(gt)[1]:.2f} |")
+    off = np.array(offsets)
+    if len(off) == len(queries) > 1:
+        centres = np.array([gt.centre() for _, gt, _, _ in queries])
+        axes = np.array([gt.R[2] for _, gt, _, _ in queries])
+        depths = np.array([d for *_, d in queries])
+        lines += ["", "| floor from | each view's offset over it (query 0, 1, ...) |", "|---|---|"]
+        for k in (1, 2, 3):
+            ratio = []
+            for i in range(len(off)):
+                dist = (np.arccos(np.clip(axes @ axes[i], -1.0, 1.0))
+                        + np.linalg.norm(centres - centres[i], axis=1) / depths[i])
+                dist[i] = np.inf
+                ratio.append(off[i] / np.sqrt(np.mean(off[np.argsort(dist)[:k]] ** 2)))
+            lines.append(f"| the {k} nearest other view{'s' if k > 1 else ''} | "
+                         + ", ".join(f"{v:.2f}" for v in ratio) + " |")
+        rest = [off[i] / np.sqrt(np.mean(np.delete(off, i) ** 2)) for i in range(len(off))]
+        lines.append("| all other views | " + ", ".join(f"{v:.2f}" for v in rest) + " |")
+    print("\n".join(lines), flush=True)
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+", default=["snow_sharp", "snow", "lego"])
     ap.add_argument("--queries", type=int, default=6)
     ap.add_argument("--draws", type=int, default=8)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--regional", action="store_true",
+                    help="only the minimum on each image half and the floor of nearby views, per dataset")
     args = ap.parse_args()
     hp.init()
     t0 = time.perf_counter()
@@ -207,8 +260,13 @@ def main() -> None:
         cam, scene, queries, bg = loaded
         queries = queries[:args.queries]
         refiner = hp.HGSLocPlugin(scene, hp.RefineConfig(background=bg))
+        if args.regional:
+            regional_part(name, refiner, cam, queries)
+            continue
         lines += floor_part(name, refiner, cam, queries, bg)
         lines += decision_part(name, refiner, cam, queries, args.draws)
+    if args.regional:
+        return
     lines.append(f"\nTotal {time.perf_counter() - t0:.0f} s.")
     if args.out:
         write_keeping_notes(Path(args.out), lines)

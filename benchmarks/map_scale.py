@@ -3,6 +3,7 @@
 Usage: python -m benchmarks.map_scale [--k 1 4 10 20] [--queries 9] [--noise 3cm,1deg] [--paths P ...] [--out FILE]
        python -m benchmarks.map_scale --stages [--k 1 20]
        python -m benchmarks.map_scale --footprints [--k 1 20] [--queries 9]
+       python -m benchmarks.map_scale --cuts [--k 1 4 10 20] [--queries 9]
 
 The demo room densified k times: ``--maps split`` (the default; ``demo.scene.densify_split``: every Gaussian split
 into k children with its moments, queries rendered from the densified map, so the truth is a minimum) or
@@ -31,7 +32,10 @@ process so that its peak memory (max RSS) is its own. Paths (``--paths``; defaul
 - ``working set, gradient first, plain renders``: the exact path with every scoring size rendered as 3DGS renders
   at its training size (``Tuning.antialias=False``; the default until 2026-12-07: each size below the query image
   renders as the image reduced to it, ``Camera.downsample``), compared with the default exact path;
-  ``working set + LOD 2 px, gradient first, plain renders``: the cut so rendered, compared with the plain path.
+  ``working set + LOD 2 px, gradient first, plain renders``: the cut so rendered, compared with the plain path;
+- ``the undensified map (the parents), gradient first`` (``--maps split``): the split map's queries refined on the
+  room before the split, what a hierarchy merging each parent's children back into it would draw, compared with
+  the split map's exact path.
 
 Before the timed queries, each process refines the first query once untimed (kernel compilation or loading
 from Taichi's offline cache, once per process; its time is printed as "warm-up").
@@ -40,6 +44,9 @@ the working-set row includes nothing of the selection, which is counted in s / q
 largest selection of a query, median) and selections per query,
 renders, derivative passes and seconds per query, accuracy before / after (medians, cm / deg), peak RSS; then
 where the timed queries' seconds go, by stage and scoring size (``harness.stage_clock``).
+
+``--cuts``: at the first query's true pose, the Gaussians each scoring size draws, exact and from cuts at 1 / 2 / 4 px;
+and the split maps' PSNR against the room at the query poses.
 
 ``--stages``: where one render's time goes at each size (the default path's renderer, the first query's prior at the
 final scoring size, one pose, median of 15): projection, tile sort, blending (each its kernels' launches,
@@ -86,6 +93,11 @@ EXACT = {path: "working set, gradient first"
          for path in [f"working set + LOD {px} px, gradient first" for px in (1, 2, 3, 4)] + list(NUDGED)
          + ["working set, gradient first, plain renders"]}
 EXACT["working set + LOD 2 px, gradient first, plain renders"] = "working set, gradient first, plain renders"
+#: ``--maps split``: the split map's queries refined on the map before the split (its parents, as an ideal level of
+#: detail would merge them back): how far the split map's own images are from its parents'
+PARENTS = "the undensified map (the parents), gradient first"
+PATHS[PARENTS] = PATHS["working set, gradient first"]
+EXACT[PARENTS] = "working set, gradient first"
 MAPS = ("split", "jitter", "snow_sharp")
 DEFAULT_PATHS = ("whole map, search", "working set, search", "working set, gradient first")
 
@@ -118,6 +130,10 @@ def child(k: int, path: str, queries: int, noise: str, maps: str = "split") -> d
         rng = np.random.default_rng(7)
         priors = [apply_protocol(g, noise, rng) for g in gts]
         qs = [(f"room{i}", g, im, 0.0) for i, (g, im) in enumerate(zip(gts, imgs))]  # metric: no depth needed
+        if path == PARENTS:
+            if maps != "split":
+                raise SystemExit(f"{PARENTS!r} needs --maps split")
+            scene = room  # the split map's queries, the map before the split
         del room, truth
     gts, imgs = [g for _, g, _, _ in qs], [im for _, _, im, _ in qs]
     case = maps if maps == "snow_sharp" else "room"  # errors in % of the depth, or cm (harness.case_errors)
@@ -258,6 +274,51 @@ def footprints(k: int, queries: int) -> list[str]:
     return rows
 
 
+def cut_sizes(k: int) -> list[str]:
+    """Markdown rows: on the room split ``k`` times (``densify_split``), at the first query's true pose and each
+    scoring size of the default route, the Gaussians the exact working set draws and those cuts of the map's
+    hierarchy at 1, 2 and 4 px draw (``CutSelection``; the working-set region of the default plan)."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify_split, make_room_scene
+    from hgsloc_plugin.refine.plan import make_plan
+    from hgsloc_plugin.render.hierarchy import CutSelection, build_hierarchy
+
+    scene = densify_split(make_room_scene(), k)
+    pose = query_poses(1, seed=1)[0]
+    refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0))
+    plan = make_plan(refiner.config, scene, QUERY_CAMERA, pose, hp.QueryPrior())
+    ws = refiner.renderer_for(plan)
+    renderer = refiner.renderer
+    hierarchy = build_hierarchy(renderer.arrays(), renderer.source_index)
+    rows = []
+    cams = {(c.width, c.height): c for c in (plan.cam_coarse, plan.cam_polish, plan.cam_final)}
+    for _, cam in sorted(cams.items()):
+        region = (pose, ws.radius_shift, ws.radius_rotation_deg)
+        drawn = [renderer.working_set([cam], *region).n]
+        drawn += [CutSelection(renderer, hierarchy, px)([cam], *region).n for px in (1.0, 2.0, 4.0)]
+        rows.append(f"| {scene.num_gaussians:,} | {cam.width}x{cam.height} | " + " | ".join(f"{n:,}" for n in drawn)
+                    + " |")
+    return rows
+
+
+def parents_psnr(k: int, queries: int) -> str:
+    """One Markdown row: the PSNR (dB) of the room split ``k`` times against the room, rendered at the query poses
+    (320x240): how far the split map's image is from its parents' (min, median, max over the queries)."""
+    import hgsloc_plugin as hp
+    from hgsloc_plugin.cli.demo.queries import query_poses
+    from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
+    from hgsloc_plugin.cli.demo.scene import densify_split, make_room_scene
+    from hgsloc_plugin.render.lod import psnr
+
+    room = make_room_scene()
+    poses = query_poses(queries, seed=1)
+    db = [psnr(a, b) for a, b in zip(hp.render(room, QUERY_CAMERA, poses),
+                                     hp.render(densify_split(room, k), QUERY_CAMERA, poses))]
+    return f"| {len(room.means) * k:,} | {min(db):.1f} / {np.median(db):.1f} / {max(db):.1f} |"
+
+
 def _against_exact(r: dict, exact: dict | None) -> str:
     """Median and largest change of the translation error against the exact path's, per query, in % of the
     query's depth ("-" without an exact row)."""
@@ -288,12 +349,24 @@ def main() -> None:
     ap.add_argument("--stages", action="store_true", help="only split one render's time by stage at each --k")
     ap.add_argument("--footprints", action="store_true",
                     help="only the share of the Gaussians in view under 0.5 / 1 px at each scoring size, per --k")
+    ap.add_argument("--cuts", action="store_true",
+                    help="only the Gaussians drawn at each scoring size, exact and cut at 1 / 2 / 4 px, per --k")
     ap.add_argument("--child", nargs=2, metavar=("K", "PATH"), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.footprints:
         print("| Gaussians | scoring size | in view | sigma < 0.5 px | < 1 px |\n|---|---|---|---|---|", flush=True)
         for k in a.k:
             print("\n".join(footprints(k, a.queries)), flush=True)
+        return
+    if a.cuts:
+        print("| Gaussians | scoring size | exact working set | cut 1 px | 2 px | 4 px |\n|---|---|---|---|---|---|",
+              flush=True)
+        for k in a.k:
+            print("\n".join(cut_sizes(k)), flush=True)
+        print("\n| Gaussians | PSNR against the parents (dB: min / median / max over the queries) |\n|---|---|",
+              flush=True)
+        for k in a.k:
+            print(parents_psnr(k, a.queries), flush=True)
         return
     if a.stages:
         print("| Gaussians | rendered (working set) | visible | tile-list entries | footprint pixels per pixel | "

@@ -95,3 +95,36 @@ def test_map_scale_level_of_detail_rows(tmp_path, monkeypatch):
     assert len(rows) == 6, out.getvalue()[-2000:]  # three table rows, three stage rows
     for row in rows[1:3]:  # accepted, and compared with the exact path
         assert "1 / 1" in row and "(max" in row
+
+
+def _run(monkeypatch, name: str, args: list[str]) -> str:
+    monkeypatch.syspath_prepend(str(ROOT))
+    monkeypatch.setattr(sys, "argv", [f"benchmarks/{name}.py", *args])
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        runpy.run_module(f"benchmarks.{name}", run_name="__main__")
+    return out.getvalue()
+
+
+def test_map_scale_cut_sizes(tmp_path, monkeypatch):
+    """``map_scale --cuts``: a row per scoring size with the exact and the 1 / 2 / 4 px counts, and the unsplit
+    room against itself (infinite PSNR)."""
+    monkeypatch.setenv("HGSLOC_LOD_CACHE_DIR", str(tmp_path))
+    text = _run(monkeypatch, "map_scale", ["--cuts", "--k", "1", "--queries", "2"])
+    rows = [line.split("|")[3:7] for line in text.splitlines() if line.startswith("| 48,761 | ") and "x" in line]
+    assert len(rows) == 3, text
+    counts = [[int(c.replace(",", "")) for c in row] for row in rows]
+    assert all(0 < n <= 48761 for row in counts for n in row)
+    assert counts[-1][3] <= counts[-1][0] and counts[0][3] < counts[0][0]  # 4 px merges at the coarsest size
+    assert "| 48,761 | inf / inf / inf |" in text
+
+
+def test_map_floor_regional(monkeypatch):
+    """``map_floor --regional``: the whole image and its four halves per query, and the floors of nearby views."""
+    if not ALL:
+        pytest.skip("5-110 s: run with HGSLOC_BENCH_SMOKE=1")
+    shared_path("lego")
+    text = _run(monkeypatch, "map_floor", ["--regional", "--datasets", "lego", "--queries", "2"])
+    for part in ("whole", "left", "right", "top", "bottom"):
+        assert sum(f"| {part} |" in line for line in text.splitlines()) == 2, text
+    assert "| the 1 nearest other view |" in text and "| all other views |" in text

@@ -457,10 +457,15 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="write the table as Markdown here")
     ap.add_argument("--from-raw", default=None, help="tabulate this raw file instead of running trials")
     ap.add_argument("--compare", default=None, help="a raw file of another run: compare trial by trial")
+    ap.add_argument("--sigma-scale", type=float, default=1.0,
+                    help="with --from-raw: every returned sigma times this in the within-sigma columns (what one "
+                         "scale for all queries would do to the calibration)")
     ap.add_argument("--shard", default=None, help=argparse.SUPPRESS)  # "k/n": run every n-th trial from k
     args = ap.parse_args()
     if args.from_raw:
         rows = [json.loads(line) for line in Path(args.from_raw).read_text().splitlines()]
+        for r in rows:
+            r["sigma_t"], r["sigma_r"] = r["sigma_t"] * args.sigma_scale, r["sigma_r"] * args.sigma_scale
         report(rows, [s for s in SCENES if any(r["scene"] == s for r in rows)],
                [x for x in LOCALIZERS if any(r["localizer"] == x for r in rows)], args,
                f"{len(rows)} trials from {args.from_raw}")

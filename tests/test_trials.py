@@ -98,3 +98,21 @@ def test_trials_smoke_run(tmp_path):
     assert rows[0]["inliers"] is not None and rows[1]["inliers"] is None  # ACE's draws carry their counts
     text = out.read_text()
     assert "| ace | room | 1 |" in text and "| **all** | **all** | 2 |" in text
+
+
+def test_from_raw_scales_sigma_in_the_calibration_columns(tmp_path):
+    """``--from-raw FILE --sigma-scale F`` tabulates a kept run with every sigma times F: errors 0.5, 1.5, 2.5 at
+    sigma 1 lie one, two and three within 1, 2 and 3 sigma; at three times sigma, all three within 1."""
+    raw = tmp_path / "raw.jsonl"
+    rows = [_row(3.0, 1.0, e, 0.1, index=i, scene="room", view=i, localizer="ace") for i, e in
+            enumerate((0.5, 1.5, 2.5))]
+    raw.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+    def within(scale):
+        proc = subprocess.run([sys.executable, "-m", "benchmarks.trials", "--from-raw", str(raw), "--sigma-scale",
+                               str(scale)], capture_output=True, text=True, timeout=120, cwd=ROOT)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("| ace | room |"))
+        return line.split("|")[11].strip()
+
+    assert within(1.0) == "33/67/100" and within(3.0) == "100/100/100"

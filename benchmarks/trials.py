@@ -424,7 +424,7 @@ def run_trials(trials: list[Trial], preset: str, out_path: Path, progress: bool 
                    "renders": int(r.renders), "seconds": float(r.seconds),
                    "cost_initial": float(r.cost_initial), "cost_final": float(r.cost_final),
                    "gradient_rejected": r.gradient_rejected, "judged": judged,
-                   "map_floor": None if floor is None else [floor.depth, floor.deg],
+                   "map_floor": None if floor is None else [floor.depth, floor.deg, floor.cost_bound],
                    "assessment": None if r.assessment is None else r.assessment.to_dict()}
             f.write(json.dumps(rec) + "\n")
             f.flush()
@@ -448,8 +448,9 @@ def main() -> None:
     ap.add_argument("--localizers", nargs="+", default=list(LOCALIZERS), choices=LOCALIZERS)
     ap.add_argument("--preset", default="default")
     ap.add_argument("--map-floor", default="default", choices=("default", "measured", "measured-all"),
-                    help="measured: each trial declares its map's floor measured on the scene's other views "
-                         "(hgsloc check --measure-floor's figure); measured-all: on all of them, its own included "
+                    help="measured: each trial declares its map's floor and cost bound measured on the scene's "
+                         "other views (hgsloc check --measure-floor's flag); measured-all: on all of them, its own "
+                         "included "
                          "(a bound: training views cover the query's part of the map); default: the package's "
                          "default floor")
     ap.add_argument("--jobs", type=int, default=2, help="processes, each on its share of the cores")

@@ -81,8 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--prior_rotation_error", help="its typical rotation error, e.g. 1deg")
     ap.add_argument("--lod_pixels", help="large maps (~500k Gaussians and more): render from the map's level-of-detail "
                                          "hierarchy, merging cells of up to this many pixels (1 on real maps)")
-    ap.add_argument("--map_floor", help="the map's own error at a view, e.g. 0.6%%,0.2deg, as 'hgsloc check "
-                                        "--measure-floor' measures it on views with known poses (default 0.3%%,0.1deg)")
+    ap.add_argument("--map_floor", help="the map's own error at a view, e.g. 0.6%%,0.2deg, and optionally its cost "
+                                        "bound (0.6%%,0.2deg,0.12cs), as 'hgsloc check --measure-floor' measures them "
+                                        "on views with known poses (default 0.3%%,0.1deg, no bound)")
     return ap
 
 

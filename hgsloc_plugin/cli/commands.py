@@ -161,7 +161,9 @@ def cmd_check(args) -> int:
         out = rep.to_dict()
         if floor is not None:
             out["map_floor"] = {"depth": floor.depth, "deg": floor.deg, "views": floor.n, "flag": floor.flag(),
-                                "offsets": {n: list(map(float, o)) for n, o in zip(floor.names, floor.offsets)}}
+                                "offsets": {n: list(map(float, o)) for n, o in zip(floor.names, floor.offsets)},
+                                "cost_bound": floor.cost_bound,
+                                "costs": {n: float(c) for n, c in zip(floor.names, floor.costs)}}
         print(dumps_json(out))
     else:
         for k, n in enumerate(rep.names):
@@ -175,9 +177,11 @@ def cmd_check(args) -> int:
               "maps (its cm-eq)")
         if floor is not None:
             worst = floor.offsets.max(axis=0)
+            bound = ("" if floor.cost_bound is None else f"; cs cost at their minima {floor.costs.min():.3g}-"
+                     f"{floor.costs.max():.3g}, refused above {floor.cost_bound:.3g}")
             print(f"map floor over {floor.n} views (their poses taken as exact): {100 * floor.depth:.3g} % of the "
                   f"depth / {floor.deg:.3g} deg (root mean square; largest {100 * worst[0]:.3g} % / {worst[1]:.3g} "
-                  f"deg): refine with --map-floor {floor.flag()}")
+                  f"deg{bound}): refine with --map-floor {floor.flag()}")
         elif args.measure_floor:
             print("map floor not measured: the map and the poses do not agree")
     return 0 if rep.ok else 1

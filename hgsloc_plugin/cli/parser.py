@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "benchmarks/map_scale.md)")
     r.add_argument("--map-floor", help="the map's own error at a view, e.g. 0.6%%,0.2deg (camera centre in %% of the "
                    "median depth, rotation), as 'hgsloc check --measure-floor' measures it on views with known poses: "
-                   "in every refined pose's sigma and in its fusion with the prior (default 0.3%%,0.1deg)")
+                   "in every refined pose's sigma and in its fusion with the prior (default 0.3%%,0.1deg); with a "
+                   "third item, e.g. 0.6%%,0.2deg,0.12cs, poses whose cs cost ends above it are refused")
     r.add_argument("--white-background", action="store_true", help="the map was trained on white")
     r.add_argument("--limit", type=count_arg, help="refine only the first N queries")
     r.add_argument("--gt-variant", help="recorded in the report (sfm, dslam, ...)")

@@ -70,11 +70,18 @@ def prior_error_overrides(error: str | None, rotation_error: str | None,
 
 
 def parse_map_floor(text: str, flag: str = "--map-floor") -> dict:
-    """'0.6%,0.2deg' (the camera-centre floor in % of the query's median depth, the rotation floor in degrees, as
-    ``hgsloc check --measure-floor`` prints it) -> the ``Tuning`` fields ``map_floor_depth`` (a fraction) and
-    ``map_floor_deg``; ValueError naming ``flag`` otherwise. Zeros are allowed, as ``Tuning`` allows them: views
-    whose minima lie at their poses to the last bit (a map rendering the views themselves) measure a floor of 0."""
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*%\s*,\s*([^,]+)", text)
+    """'0.6%,0.2deg' or '0.6%,0.2deg,0.12cs' (the camera-centre floor in % of the query's median depth, the rotation
+    floor in degrees and, optionally, the cs cost bound, as ``hgsloc check --measure-floor`` prints them) -> the
+    ``Tuning`` fields ``map_floor_depth`` (a fraction), ``map_floor_deg`` and ``map_cost_bound``; ValueError naming
+    ``flag`` otherwise. Zero floors are allowed, as ``Tuning`` allows them: views whose minima lie at their poses to
+    the last bit (a map rendering the views themselves) measure a floor of 0."""
+    num = r"([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)"
+    m = re.fullmatch(rf"\s*{num}\s*%\s*,\s*([^,]+?)\s*(?:,\s*{num}\s*cs\s*)?", text)
     if not m:
-        raise ValueError(f"{flag}: expected 'P%,Rdeg' (e.g. '0.6%,0.2deg'), got {text!r}")
-    return {"map_floor_depth": float(m.group(1)) / 100.0, "map_floor_deg": parse_angle(m.group(2), flag, zero=True)}
+        raise ValueError(f"{flag}: expected 'P%,Rdeg' or 'P%,Rdeg,Ccs' (e.g. '0.6%,0.2deg,0.12cs'), got {text!r}")
+    out = {"map_floor_depth": float(m.group(1)) / 100.0, "map_floor_deg": parse_angle(m.group(2), flag, zero=True)}
+    if m.group(3) is not None:
+        if not float(m.group(3)) > 0:
+            raise ValueError(f"{flag}: the cost bound must be > 0, got {text!r}")
+        out["map_cost_bound"] = float(m.group(3))
+    return out

@@ -63,6 +63,9 @@ class Tuning:
             covariance: what no image statistic sees (``refine/uncertainty.py``). Measure it on views with known
             poses (``hgsloc check --measure-floor``, :func:`~hgsloc_plugin.evaluation.floor.map_floor`); the
             default is a good real map's (0.3 % / 0.1 deg).
+        map_cost_bound: a refined pose whose cs cost at the judging size is above this is refused ("cost above
+            the map's level"); ``hgsloc check --measure-floor`` prints it with the floor (the 99.9 % prediction bound
+            of the costs right answers reach at views with known poses, ``evaluation/floor.py``); None: no bound.
         paper_step_q / paper_step_t: the "paper" neighbourhood's raw-component steps.
     """
 
@@ -93,6 +96,7 @@ class Tuning:
     mask_alpha: float = 0.0
     map_floor_depth: float = FLOOR_DEPTH
     map_floor_deg: float = FLOOR_DEG
+    map_cost_bound: float | None = None
     paper_step_q: float = 1e-4
     paper_step_t: float = 1e-4
 
@@ -128,6 +132,8 @@ class Tuning:
         for name in ("map_floor_depth", "map_floor_deg"):
             if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"{name} must be a number >= 0, got {getattr(self, name)!r}")
+        if self.map_cost_bound is not None and not (self.map_cost_bound > 0 and math.isfinite(self.map_cost_bound)):
+            raise ValueError(f"map_cost_bound must be a positive number or None, got {self.map_cost_bound!r}")
         if not (self.same_minimum_pixels >= 0 and math.isfinite(self.same_minimum_pixels)):
             raise ValueError(f"same_minimum_pixels must be a number >= 0, got {self.same_minimum_pixels!r}")
 
@@ -251,9 +257,18 @@ class RefineConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The settings as plain data (a report's ``config``; its digest is a run's resume fingerprint). Tuning fields
+        added after reports were first written (``ADDED_UNSET``) are left out while unset, so a run of the same
+        settings made before them still resumes."""
+        out = dataclasses.asdict(self)
+        for name, unset in ADDED_UNSET.items():
+            if out["tuning"].get(name, unset) == unset:
+                out["tuning"].pop(name, None)
+        return out
 
 
+#: Tuning fields added after reports were first written, with the value that leaves them unset (``to_dict``)
+ADDED_UNSET = {"map_cost_bound": None}
 _CONFIG_FIELDS = {f.name for f in dataclasses.fields(RefineConfig)}
 _TUNING_FIELDS = {f.name for f in dataclasses.fields(Tuning)}
 _RENAMED_HINT = (" (routes replaces polish / search / gradient_first: polish=False is routes='lattice', "

@@ -156,7 +156,8 @@ class Refiner:
             verdict = judge(cand, ctx.plan, ctx.scorer, ctx.judge_cam, rule=cfg.acceptance,
                             lattice=cfg.tuning.neighbourhood == "lattice",
                             structural=structural and METRICS[cfg.metric].structural, pivot=cfg.tuning.pivot,
-                            floor=(cfg.tuning.map_floor_depth, cfg.tuning.map_floor_deg), name=ctx.name)
+                            floor=(cfg.tuning.map_floor_depth, cfg.tuning.map_floor_deg),
+                            cost_bound=cfg.tuning.map_cost_bound, name=ctx.name)
         if self.on_judged is not None:
             self.on_judged(cand, verdict, ctx.plan)
         return cand, verdict

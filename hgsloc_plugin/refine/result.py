@@ -35,7 +35,8 @@ class RefineResult:
             fusion, the confidence: ``uncertainty.pose_uncertainty``); None when not measured.
         fused: the returned pose is the refined one fused with the prior of known error.
         rejected: why the refined pose was not returned ("no improvement", "insignificant", "weak alignment",
-            "flat valley", "trust-region edge", "level inconsistency", "prior more precise"); None when accepted.
+            "flat valley", "trust-region edge", "level inconsistency", "prior more precise", "within uncertainty",
+            "cost above the map's level"); None when accepted.
         search_pose / search_cost: the pose the acceptance rule judged and its cost, returned or not.
         assessment: the rule's measurements.
         max_shift / max_rotation_deg: the trust region the query ran with.

@@ -9,7 +9,9 @@ of one pixel of image motion around it. The candidate is returned only when it p
 of the region), "level inconsistency" (the fine levels moved it more than ``MAX_LEVEL_SHIFT`` coarsest steps),
 and for a polished pose without a prior of known error "within uncertainty" (the prior lies less than
 ``MIN_PRIOR_DISTANCE`` of the pose's own standard deviations, under the rule's band covariance, from it: not
-clearly better than the prior).
+clearly better than the prior). Where the map's cost level is declared (``Tuning.map_cost_bound``, measured on views
+with known poses: ``evaluation/floor.py``), a candidate whose cost at the judging size lies above it is refused too
+("cost above the map's level": right answers on this map do not end there), whatever else it passed.
 A polished candidate first renders 6 of the 12 moves (``model_moves``): its last polish stage's Gauss-Newton model
 ranks them, and the rule renders the pair it predicts to rise least (the flattest axis: the minimum) and the four
 at the middle of the ranking (kappa: their median). When the rendered rises do not follow the model
@@ -57,6 +59,8 @@ PRIOR_MORE_PRECISE = "prior more precise"
 #: refinement is not clearly better than the prior, so the prior is kept
 WITHIN_UNCERTAINTY = "within uncertainty"
 TRUST_REGION_EDGE = "trust-region edge"
+#: ``Verdict.rejected`` when the candidate's cost lies above the map's declared cost level (``Tuning.map_cost_bound``)
+ABOVE_MAP_LEVEL = "cost above the map's level"
 WEAK_ALIGNMENT = "weak alignment"
 
 logger = logging.getLogger("hgsloc_plugin")
@@ -201,11 +205,13 @@ class Verdict:
 
 
 def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str, lattice: bool, structural: bool,
-          pivot: bool, floor: tuple[float, float] = (FLOOR_DEPTH, FLOOR_DEG), name: str | None = None) -> Verdict:
+          pivot: bool, floor: tuple[float, float] = (FLOOR_DEPTH, FLOOR_DEG), cost_bound: float | None = None,
+          name: str | None = None) -> Verdict:
     """Apply the acceptance rule (``rule`` "trust", on the lattice; else "cost": any lower cost) to ``cand``, then
     fuse an accepted polished pose with a prior of known error. ``scorer`` scores at ``cam``, the judging size;
     ``structural``: the cost's level is comparable across images (the alignment test applies); ``floor``: the map's
-    floor (fraction of the depth, degrees) in a polished pose's covariance.
+    floor (fraction of the depth, degrees) in a polished pose's covariance; ``cost_bound``: the map's cost level
+    (``Tuning.map_cost_bound``; None: none), above which the candidate is refused.
 
     Everything the rule may need is scored in one batch: the coarse pose and the candidate (their costs are set on
     ``cand``), the one-pixel moves (6 of the 12 for a polished candidate, ``model_moves``; the other 6 in a second
@@ -251,6 +257,8 @@ def judge(cand: Candidate, plan: Plan, scorer: Scorer, cam: Camera, *, rule: str
                 rejected = WITHIN_UNCERTAINTY
     elif not cand.cost < cand.cost_initial:
         rejected = "no improvement"
+    if rejected is None and cost_bound is not None and not cand.cost <= cost_bound:
+        rejected = ABOVE_MAP_LEVEL
     pose, cost, fused = cand.pose, cand.cost, False
     if rejected is None and fuses:
         fused = fused_cost < cand.cost_initial  # nan (no fusion) is not

@@ -283,19 +283,18 @@ def cut_sizes(k: int) -> list[str]:
     from hgsloc_plugin.cli.demo.run import QUERY_CAMERA
     from hgsloc_plugin.cli.demo.scene import densify_split, make_room_scene
     from hgsloc_plugin.refine.plan import make_plan
-    from hgsloc_plugin.render.hierarchy import CutSelection, build_hierarchy
+    from hgsloc_plugin.render.hierarchy import CutSelection
 
     scene = densify_split(make_room_scene(), k)
     pose = query_poses(1, seed=1)[0]
     refiner = hp.HGSLocPlugin(scene, hp.RefineConfig.preset("default", working_set_min=0))
     plan = make_plan(refiner.config, scene, QUERY_CAMERA, pose, hp.QueryPrior())
     ws = refiner.renderer_for(plan)
-    renderer = refiner.renderer
-    hierarchy = build_hierarchy(renderer.arrays(), renderer.source_index)
+    renderer, hierarchy = refiner.renderer, refiner.hierarchy()  # the hierarchy as a query gets it (cached)
+    region = (pose, ws.radius_shift, ws.radius_rotation_deg)
     rows = []
     cams = {(c.width, c.height): c for c in (plan.cam_coarse, plan.cam_polish, plan.cam_final)}
     for _, cam in sorted(cams.items()):
-        region = (pose, ws.radius_shift, ws.radius_rotation_deg)
         drawn = [renderer.working_set([cam], *region).n]
         drawn += [CutSelection(renderer, hierarchy, px)([cam], *region).n for px in (1.0, 2.0, 4.0)]
         rows.append(f"| {scene.num_gaussians:,} | {cam.width}x{cam.height} | " + " | ".join(f"{n:,}" for n in drawn)
@@ -313,10 +312,10 @@ def parents_psnr(k: int, queries: int) -> str:
     from hgsloc_plugin.render.lod import psnr
 
     room = make_room_scene()
+    split = densify_split(room, k)
     poses = query_poses(queries, seed=1)
-    db = [psnr(a, b) for a, b in zip(hp.render(room, QUERY_CAMERA, poses),
-                                     hp.render(densify_split(room, k), QUERY_CAMERA, poses))]
-    return f"| {len(room.means) * k:,} | {min(db):.1f} / {np.median(db):.1f} / {max(db):.1f} |"
+    db = [psnr(a, b) for a, b in zip(hp.render(room, QUERY_CAMERA, poses), hp.render(split, QUERY_CAMERA, poses))]
+    return f"| {split.num_gaussians:,} | {min(db):.1f} / {np.median(db):.1f} / {max(db):.1f} |"
 
 
 def _against_exact(r: dict, exact: dict | None) -> str:

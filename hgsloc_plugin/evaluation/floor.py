@@ -15,6 +15,7 @@ on a view like the known ones lies above it one time in a thousand, a wrong mini
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -48,9 +49,10 @@ class MapFloor:
     def n(self) -> int:
         return len(self.names)
 
-    @property
+    @functools.cached_property
     def cost_bound(self) -> float | None:
-        """The cs cost above which a refined pose is refused (:func:`cost_bound`); None below 3 measured costs."""
+        """The cs cost above which a refined pose is refused (:func:`cost_bound`, computed once); None below 3
+        measured costs."""
         return cost_bound(self.costs)
 
     def flag(self) -> str:
